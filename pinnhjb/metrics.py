@@ -1,0 +1,159 @@
+"""Checks of a learned value function (Section 5.1) and of its policy in closed loop.
+
+* :func:`infinite_horizon_residual` — E of eq. (IHJB_res): mean of E_e(x)^2 over points of Omega plus V(0)^2.
+* :func:`flow_residual_field` — E_e(x) of eq. (flow_res) on a grid, for plotting (the paper's Figures 1-3).
+* :func:`optimality_errors` — max and mean-square errors of V and mu against a known V*, mu*.
+* :func:`closed_loop` — simulate ``xdot = f(x) + g(x) mu(x)`` with a batched RK4 and accumulate the cost
+  J(mu; x0) of eq. (2), so a policy is judged by what it does.
+
+``value_fn`` arguments are batched torch callables x (N, n) -> V(x) (N,), differentiable in x; points are
+float64 on the CPU (solution objects move them to their own device and precision and back).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .pinn import gradient
+
+Tensor = torch.Tensor
+ValueFn = Callable[[Tensor], Tensor]
+
+__all__ = ["default_points_per_dim", "evaluation_grid", "infinite_horizon_residual", "flow_residual_field",
+           "optimality_errors", "policy_of", "closed_loop", "ClosedLoopResult"]
+
+
+def default_points_per_dim(n: int) -> int:
+    """Grid resolution for E: 101 per axis in 2-D (the 101 x 101 grid of the reports), 21 in 3-D, 9 above."""
+    return {1: 1001, 2: 101, 3: 21}.get(n, 9)
+
+
+def evaluation_grid(system, points_per_dim: int | None = None, dtype=torch.float64, device=None) -> Tensor:
+    return system.grid(points_per_dim or default_points_per_dim(system.n), dtype=dtype, device=device)
+
+
+def _chunks(x: Tensor, size: int = 16384):
+    return torch.split(x, size)
+
+
+def flow_residual_field(system, value_fn: ValueFn, points: Tensor) -> Tensor:
+    """E_e(x; V) at every point (eq. (flow_res)), detached, shape (N,)."""
+    system.check_states(points, "points")
+    out = []
+    for xc in _chunks(points):
+        _, g = gradient(value_fn, xc)
+        out.append(system.hamiltonian_min(xc, g).detach())
+    return torch.cat(out)
+
+
+def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None = None,
+                              points_per_dim: int | None = None) -> dict:
+    """E = mean_i E_e(x_i)^2 + V(0)^2 (eq. (IHJB_res)) on ``points`` (default: a grid over Omega).
+
+    Returns ``{"E", "E_flow", "E_boundary", "E_zero"}`` where ``E_zero`` is E of the trivial V = 0 on the
+    same points (mean Q^2): on small boxes E is only meaningful next to it.
+    """
+    if points is None:
+        points = evaluation_grid(system, points_per_dim)
+    e = flow_residual_field(system, value_fn, points)
+    with torch.no_grad():
+        v0 = value_fn(torch.zeros(1, system.n, dtype=points.dtype, device=points.device))
+        e_zero = (system.Q(points) ** 2).mean()
+    flow = float((e**2).mean())
+    boundary = float(v0.reshape(()) ** 2)
+    return {"E": flow + boundary, "E_flow": flow, "E_boundary": boundary, "E_zero": float(e_zero)}
+
+
+def policy_of(system, value_fn: ValueFn) -> Callable[[Tensor], Tensor]:
+    """mu(x) = -1/2 R^{-1} g(x)' grad V(x) (eq. (3)), as a batched callable (N, m)."""
+
+    def mu(x: Tensor) -> Tensor:
+        _, g = gradient(value_fn, x)
+        return system.policy_from_gradient(x, g).detach()
+
+    return mu
+
+
+def optimality_errors(system, value_fn: ValueFn, points: Tensor | None = None,
+                      points_per_dim: int | None = None) -> dict:
+    """Errors of V(.) and mu(.) against the system's known V*, mu* on ``points`` (default: grid over Omega).
+
+    Returns max |V - V*|, RMS and MSE of V - V*, and the same for mu (max over points and inputs).
+    Raises ValueError when the system has no known V*.
+    """
+    if system.value_star is None or system.policy_star is None:
+        raise ValueError(f"system '{system.name}' has no known V*/mu*; errors need a reference (see pinnhjb.reference)")
+    if points is None:
+        points = evaluation_grid(system, points_per_dim)
+    mu = policy_of(system, value_fn)
+    dv, du = [], []
+    for xc in _chunks(points):
+        with torch.no_grad():
+            dv.append(value_fn(xc).detach() - system.value_star(xc))
+        du.append(mu(xc) - system.policy_star(xc))
+    dv, du = torch.cat(dv), torch.cat(du)
+    return {
+        "value_max_error": float(dv.abs().max()), "value_rmse": float(dv.pow(2).mean().sqrt()),
+        "value_mse": float(dv.pow(2).mean()),
+        "policy_max_error": float(du.abs().max()), "policy_rmse": float(du.pow(2).mean().sqrt()),
+        "policy_mse": float(du.pow(2).mean()),
+    }
+
+
+@dataclass
+class ClosedLoopResult:
+    """Trajectories of the closed loop from a batch of initial states.
+
+    ``t`` (K+1,), ``x`` (K+1, N, n), ``u`` (K+1, N, m), ``cost`` J accumulated to t_final (N,),
+    ``stabilized`` (N,) bool: |x(t_final)| below ``tol``.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    cost: np.ndarray
+    stabilized: np.ndarray
+
+    @property
+    def fraction_stabilized(self) -> float:
+        return float(np.mean(self.stabilized))
+
+
+def closed_loop(system, policy: Callable[[Tensor], Tensor], x0, t_final: float = 20.0, dt: float = 0.01,
+                tol: float = 1e-3) -> ClosedLoopResult:
+    """Integrate xdot = f(x) + g(x) policy(x) and dJ/dt = Q(x) + u'Ru with classical RK4 (batched in torch).
+
+    ``x0``: (N, n) tensor or array of initial states. The running cost is integrated with the state, so
+    ``cost`` approximates J(policy; x0) of eq. (2) truncated at ``t_final`` (choose it long enough for the
+    tail to vanish; ``stabilized`` tells whether it did).
+    """
+    x = system.check_states(torch.as_tensor(x0), "x0").to(torch.float64)
+    if not (t_final > 0 and dt > 0):
+        raise ValueError(f"t_final and dt must be positive; got t_final={t_final}, dt={dt}")
+    steps = int(round(t_final / dt))
+
+    def rhs(z):
+        xs = z[:, :-1]
+        u = policy(xs).to(torch.float64)
+        return torch.cat([system.dynamics(xs, u), system.running_cost(xs, u).unsqueeze(-1)], dim=-1), u
+
+    z = torch.cat([x, torch.zeros(x.shape[0], 1, dtype=x.dtype)], dim=-1)
+    xs, us = [x.clone()], []
+    for _ in range(steps):
+        k1, u = rhs(z)
+        k2, _ = rhs(z + 0.5 * dt * k1)
+        k3, _ = rhs(z + 0.5 * dt * k2)
+        k4, _ = rhs(z + dt * k3)
+        z = z + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        if not torch.all(torch.isfinite(z)):
+            z = torch.where(torch.isfinite(z), z, torch.full_like(z, float("inf")))
+        xs.append(z[:, :-1].clone())
+        us.append(u)
+    us.append(rhs(z)[1])
+    xt = torch.stack(xs).numpy()
+    final = np.linalg.norm(xt[-1], axis=-1)
+    return ClosedLoopResult(t=np.linspace(0.0, steps * dt, steps + 1), x=xt, u=torch.stack(us).numpy(),
+                            cost=z[:, -1].numpy(), stabilized=np.isfinite(final) & (final < tol))

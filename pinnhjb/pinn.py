@@ -1,0 +1,220 @@
+"""Value networks and the paper's residuals (Section 3).
+
+* :class:`FiniteHorizonValue` is ``v_T(x, t)`` on ``Omega x [0, T]`` for the finite-horizon HJB (eq. (5)). With
+  ``ansatz=True`` (our default) it is written as
+  ``v(x, t) = phi(x) + (T - t)/T * (N(x, t) - N(0, t))`` so that the terminal condition ``v(x, T) = phi(x)``
+  (residual F_b) and the origin condition ``v(0, t) = 0`` (residual F_in, when phi(0) = 0) hold exactly;
+  with ``ansatz=False`` it is the plain network ``N(x, t)`` of the paper and both conditions enter the loss.
+* :class:`SteadyStateValue` is ``V(x)`` for the direct steady-state PINN (the paper's T = infinity column).
+* Terminal costs phi are small modules: :class:`ZeroTerminalCost`, :class:`QuadraticTerminalCost`,
+  :class:`ValueTerminalCost` (a frozen previous stage at t = 0, the terminal cost of the horizon
+  extension, eq. (HJBinc)) and :class:`CallableTerminalCost` for a user's function.
+* :func:`value_and_gradients`, :func:`flow_residual` (F_e) and :func:`hjb_residual` (E_e, eq. (flow_res))
+  use autograd; no finite differences anywhere.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+Tensor = torch.Tensor
+
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "tanh": nn.Tanh,
+    "sigmoid": nn.Sigmoid,
+    "softplus": nn.Softplus,
+    "silu": nn.SiLU,
+    "gelu": nn.GELU,
+}
+
+__all__ = [
+    "MLP", "FiniteHorizonValue", "SteadyStateValue", "ZeroTerminalCost", "QuadraticTerminalCost",
+    "ValueTerminalCost", "CallableTerminalCost", "value_and_gradients", "flow_residual", "hjb_residual",
+    "gradient",
+]
+
+
+class MLP(nn.Module):
+    """Fully connected network R^d -> R with ``depth`` hidden layers of ``width`` units (paper: 3 x 100 tanh)."""
+
+    def __init__(self, in_dim: int, width: int = 100, depth: int = 3, activation: str = "tanh"):
+        super().__init__()
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"unknown activation {activation!r}; choose one of {sorted(ACTIVATIONS)}")
+        if width < 1 or depth < 1:
+            raise ValueError(f"width and depth must be positive; got width={width}, depth={depth}")
+        layers: list[nn.Module] = []
+        d = in_dim
+        for _ in range(depth):
+            layers += [nn.Linear(d, width), ACTIVATIONS[activation]()]
+            d = width
+        layers.append(nn.Linear(d, 1))
+        self.layers = nn.Sequential(*layers)
+
+    def forward(self, z: Tensor) -> Tensor:
+        return self.layers(z).squeeze(-1)
+
+
+class _Scaled(nn.Module):
+    """Shared input scaling: states mapped from the training box to [-1, 1]^n."""
+
+    def __init__(self, train_domain):
+        super().__init__()
+        box = torch.as_tensor(np.asarray(train_domain, dtype=float))
+        self.register_buffer("center", (box[:, 0] + box[:, 1]) / 2)
+        self.register_buffer("halfwidth", (box[:, 1] - box[:, 0]) / 2)
+
+    def scale_x(self, x: Tensor) -> Tensor:
+        return (x - self.center) / self.halfwidth
+
+
+# ---------------------------------------------------------------------- terminal costs
+
+class ZeroTerminalCost(nn.Module):
+    """phi = 0 (the paper's choice in all its simulations)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.zeros(x.shape[0], dtype=x.dtype, device=x.device) + 0.0 * x.sum(-1)
+
+    def spec(self) -> dict:
+        return {"kind": "zero"}
+
+
+class QuadraticTerminalCost(nn.Module):
+    """phi(x) = x' P x (e.g. psi + V* in the LQ illustrations of Lemma 4)."""
+
+    def __init__(self, P):
+        super().__init__()
+        self.register_buffer("P", torch.as_tensor(np.asarray(P, dtype=float)))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.einsum("bi,ij,bj->b", x, self.P.to(x.dtype), x)
+
+    def spec(self) -> dict:
+        return {"kind": "quadratic", "P": self.P.tolist()}
+
+
+class CallableTerminalCost(nn.Module):
+    """phi given by a user's batched torch callable x (N,n) -> (N,). Not storable in a checkpoint."""
+
+    def __init__(self, fn: Callable[[Tensor], Tensor]):
+        super().__init__()
+        self.fn = fn
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.fn(x)
+
+    def spec(self) -> dict:
+        return {"kind": "callable"}
+
+
+class ValueTerminalCost(nn.Module):
+    """phi(x) = V_T(x, 0) of a previous, frozen stage: the terminal cost of the horizon extension (eq. (HJBinc))."""
+
+    def __init__(self, previous: "FiniteHorizonValue"):
+        super().__init__()
+        self.previous = previous
+        for p in self.previous.parameters():
+            p.requires_grad_(False)
+
+    def forward(self, x: Tensor) -> Tensor:
+        t = torch.zeros(x.shape[0], dtype=x.dtype, device=x.device)
+        return self.previous(x, t)
+
+    def spec(self) -> dict:
+        return {"kind": "previous_stage"}
+
+
+# ---------------------------------------------------------------------- value networks
+
+class FiniteHorizonValue(_Scaled):
+    """v_T(x, t) on Omega x [0, T] (Algorithm 1). See the module docstring for the ansatz."""
+
+    def __init__(self, n: int, horizon: float, train_domain, terminal_cost: nn.Module | None = None,
+                 width: int = 100, depth: int = 3, activation: str = "tanh", ansatz: bool = True):
+        super().__init__(train_domain)
+        if not horizon > 0:
+            raise ValueError(f"horizon must be positive; got {horizon}")
+        self.n = n
+        self.horizon = float(horizon)
+        self.ansatz = bool(ansatz)
+        self.terminal_cost = ZeroTerminalCost() if terminal_cost is None else terminal_cost
+        self.net = MLP(n + 1, width, depth, activation)
+
+    def raw(self, x: Tensor, t: Tensor) -> Tensor:
+        """The bare network N(x, t), inputs scaled to [-1, 1]."""
+        tau = 2.0 * t.reshape(-1, 1) / self.horizon - 1.0
+        return self.net(torch.cat([self.scale_x(x), tau], dim=-1))
+
+    def correction(self, x: Tensor, t: Tensor) -> Tensor:
+        """v - phi under the ansatz, (T - t)/T (N(x,t) - N(0,t)); the bare N(x, t) otherwise."""
+        if not self.ansatz:
+            return self.raw(x, t)
+        s = (self.horizon - t) / self.horizon
+        return s * (self.raw(x, t) - self.raw(torch.zeros_like(x), t))
+
+    def forward(self, x: Tensor, t: Tensor | float) -> Tensor:
+        t = _broadcast_time(t, x)
+        out = self.correction(x, t)
+        return out + self.terminal_cost(x) if self.ansatz else out
+
+
+class SteadyStateValue(_Scaled):
+    """V(x) for the direct steady-state PINN on eq. (4): N(x) - N(0) (ansatz) or N(x) (soft, as the paper)."""
+
+    def __init__(self, n: int, train_domain, width: int = 100, depth: int = 3, activation: str = "tanh",
+                 ansatz: bool = True):
+        super().__init__(train_domain)
+        self.n = n
+        self.ansatz = bool(ansatz)
+        self.net = MLP(n, width, depth, activation)
+
+    def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        out = self.net(self.scale_x(x))
+        if self.ansatz:
+            out = out - self.net(self.scale_x(torch.zeros_like(x[:1])))
+        return out
+
+
+def _broadcast_time(t, x: Tensor) -> Tensor:
+    if not isinstance(t, torch.Tensor):
+        return torch.full((x.shape[0],), float(t), dtype=x.dtype, device=x.device)
+    t = t.to(dtype=x.dtype, device=x.device).reshape(-1)
+    return t.expand(x.shape[0]) if t.numel() == 1 else t
+
+
+# ---------------------------------------------------------------------- residuals
+
+def gradient(fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> tuple[Tensor, Tensor]:
+    """Values fn(x) (N,) and their gradient in x (N, n) by autograd."""
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        v = fn(x)
+        (g,) = torch.autograd.grad(v.sum(), x, create_graph=create_graph)
+    return v, g
+
+
+def value_and_gradients(model: FiniteHorizonValue, x: Tensor, t: Tensor | float, create_graph: bool = False):
+    """v(x, t), grad_x v and dv/dt by autograd (one backward pass)."""
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        t = _broadcast_time(t, x).detach().requires_grad_(True)
+        v = model(x, t)
+        gx, gt = torch.autograd.grad(v.sum(), (x, t), create_graph=create_graph)
+    return v, gx, gt
+
+
+def flow_residual(system, model: FiniteHorizonValue, x: Tensor, t: Tensor | float,
+                  create_graph: bool = False) -> Tensor:
+    """F_e(x, t; v) = dv/dt + grad_x v' f + Q - 1/4 grad_x v' g R^{-1} g' grad_x v (Section 3)."""
+    _, gx, gt = value_and_gradients(model, x, t, create_graph=create_graph)
+    return gt + system.hamiltonian_min(x, gx)
+
+
+def hjb_residual(system, value_fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> Tensor:
+    """E_e(x; V) of eq. (flow_res): the steady-state HJB (4) evaluated on V(.) = value_fn, per point (N,)."""
+    _, g = gradient(value_fn, x, create_graph=create_graph)
+    return system.hamiltonian_min(x, g)

@@ -1,0 +1,203 @@
+"""Result objects: what a solver returns, with its metrics and provenance.
+
+A :class:`FiniteHorizonSolution` is a chain of :class:`Stage` s. Stage 1 solves the finite-horizon HJB (5)
+on [0, T_1] with terminal cost phi; stage k solves eq. (HJBinc) on [0, T_k - T_{k-1}] with terminal cost
+V_{T_{k-1}}(., 0) (Theorem 2), so ``value(x, 0)`` of the whole chain is V_{T_K}(x, 0) and, more generally,
+``value(x, t)`` is V_{T_K}(x, t) for any t in [0, T_K]. A :class:`SteadyStateSolution` is the direct
+steady-state PINN (the paper's T = infinity).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from . import metrics as _metrics
+from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
+from .training import TrainHistory
+
+Tensor = torch.Tensor
+
+__all__ = ["Stage", "FiniteHorizonSolution", "SteadyStateSolution"]
+
+
+class _ValueSolution:
+    """Shared evaluation: V, grad V, mu = -1/2 R^{-1} g' grad V, E and errors, for numpy or torch input."""
+
+    system = None
+
+    def _model_value(self, x: Tensor, t: float) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return next(self._models()[0].parameters()).dtype
+
+    @property
+    def device(self) -> torch.device:
+        return next(self._models()[0].parameters()).device
+
+    def _models(self):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _value_fn(self, t: float = 0.0):
+        def fn(x: Tensor) -> Tensor:
+            return self._model_value(x.to(self.device, self.dtype), t).to(x.device, x.dtype)
+        return fn
+
+    def _prepare(self, x):
+        is_numpy = not isinstance(x, torch.Tensor)
+        xt = torch.as_tensor(np.asarray(x, dtype=float)) if is_numpy else x
+        return self.system.check_states(xt), is_numpy
+
+    def value(self, x, t: float = 0.0):
+        """V(x, t) for states x (N, n): numpy in -> numpy out, tensor in -> tensor out (detached)."""
+        xt, is_numpy = self._prepare(x)
+        with torch.no_grad():
+            v = self._value_fn(t)(xt)
+        return v.numpy() if is_numpy else v
+
+    def gradient(self, x, t: float = 0.0):
+        """grad_x V(x, t), shape (N, n), by autograd."""
+        xt, is_numpy = self._prepare(x)
+        _, g = gradient(self._value_fn(t), xt)
+        return g.numpy() if is_numpy else g
+
+    def policy(self, x, t: float = 0.0):
+        """mu(x, t) = -1/2 R^{-1} g(x)' grad_x V(x, t) (eqs. (6), (13)), shape (N, m)."""
+        xt, is_numpy = self._prepare(x)
+        _, g = gradient(self._value_fn(t), xt)
+        u = self.system.policy_from_gradient(xt, g).detach()
+        return u.numpy() if is_numpy else u
+
+    def residual_field(self, x):
+        """E_e(x; V(., 0)) of eq. (flow_res) at the given states."""
+        xt, is_numpy = self._prepare(x)
+        e = _metrics.flow_residual_field(self.system, self._value_fn(0.0), xt)
+        return e.numpy() if is_numpy else e
+
+    def evaluate(self, points_per_dim: int | None = None) -> dict:
+        """E (eq. (IHJB_res)) on a grid over Omega, and errors against V*, mu* when the system knows them."""
+        fn = self._value_fn(0.0)
+        out = _metrics.infinite_horizon_residual(self.system, fn, points_per_dim=points_per_dim)
+        if self.system.value_star is not None:
+            out.update(_metrics.optimality_errors(self.system, fn, points_per_dim=points_per_dim))
+        return out
+
+    def closed_loop(self, x0, t_final: float = 20.0, dt: float = 0.01) -> _metrics.ClosedLoopResult:
+        """Simulate the learned policy mu(., 0) from initial states x0 (see :func:`pinnhjb.metrics.closed_loop`)."""
+        return _metrics.closed_loop(self.system, _metrics.policy_of(self.system, self._value_fn(0.0)), x0,
+                                    t_final=t_final, dt=dt)
+
+
+@dataclass
+class Stage:
+    """One trained horizon: the network, where it sits in the chain, its training history and metrics.
+
+    ``start`` is the horizon already covered before this stage (T_{k-1}; 0 for the first), ``length`` its
+    own time span, so the stage answers V_{end}(., 0) with ``end = start + length``.
+    """
+
+    model: FiniteHorizonValue
+    start: float
+    history: TrainHistory
+    seed: int
+    metrics: dict = field(default_factory=dict)
+
+    @property
+    def length(self) -> float:
+        return self.model.horizon
+
+    @property
+    def end(self) -> float:
+        return self.start + self.length
+
+
+class FiniteHorizonSolution(_ValueSolution):
+    """V_T(x, t) and mu_T(x, t) from a chain of stages (Algorithm 1 + Theorem 2)."""
+
+    def __init__(self, system, config, stages: list[Stage], terminal_spec: dict, interrupted: bool = False):
+        if not stages:
+            raise ValueError("a FiniteHorizonSolution needs at least one stage")
+        self.system = system
+        self.config = config
+        self.stages = list(stages)
+        self.terminal_spec = terminal_spec
+        self.interrupted = interrupted
+
+    def _models(self):
+        return [s.model for s in self.stages]
+
+    @property
+    def horizon(self) -> float:
+        """The total horizon T_K reached by the chain."""
+        return self.stages[-1].end
+
+    @property
+    def horizons(self) -> list[float]:
+        return [s.end for s in self.stages]
+
+    @property
+    def metrics(self) -> dict:
+        return self.stages[-1].metrics
+
+    @property
+    def wall_time(self) -> float:
+        return float(sum(s.history.wall_time for s in self.stages))
+
+    def _model_value(self, x: Tensor, t: float) -> Tensor:
+        t = float(t)
+        if not 0.0 <= t <= self.horizon + 1e-12:
+            raise ValueError(f"t must lie in [0, {self.horizon}] for this solution; got {t}")
+        # V_{T_K}(x, t) = stage_j(x, t - (T_K - T_j)) for t in [T_K - T_j, T_K - T_{j-1}].
+        for stage in reversed(self.stages):
+            offset = self.horizon - stage.end
+            if t <= offset + stage.length + 1e-12:
+                return stage.model(x, max(t - offset, 0.0))
+        raise AssertionError("unreachable")
+
+    def truncated(self, k: int) -> "FiniteHorizonSolution":
+        """The solution after the first ``k`` stages (horizon T_k), sharing the trained networks."""
+        if not 1 <= k <= len(self.stages):
+            raise ValueError(f"k must be in 1..{len(self.stages)}; got {k}")
+        return FiniteHorizonSolution(self.system, self.config, self.stages[:k], self.terminal_spec)
+
+    def summary(self) -> list[dict]:
+        """One row per stage: horizon reached, wall time, final loss and the stage's metrics."""
+        return [{"stage": i + 1, "horizon": s.end, "wall_time": s.history.wall_time,
+                 "final_loss": s.history.final_loss, "stop_reason": s.history.stop_reason, **s.metrics}
+                for i, s in enumerate(self.stages)]
+
+    def __repr__(self):
+        e = self.metrics.get("E")
+        return (f"FiniteHorizonSolution(system={self.system.name!r}, horizons={self.horizons}, "
+                f"E={e if e is None else f'{e:.3e}'}, wall_time={self.wall_time:.1f}s)")
+
+
+class SteadyStateSolution(_ValueSolution):
+    """The direct steady-state PINN V(x) (the paper's T = infinity column of Table 1)."""
+
+    def __init__(self, system, config, model: SteadyStateValue, history: TrainHistory, seed: int,
+                 metrics: dict | None = None):
+        self.system = system
+        self.config = config
+        self.model = model
+        self.history = history
+        self.seed = seed
+        self.metrics = metrics or {}
+
+    def _models(self):
+        return [self.model]
+
+    @property
+    def wall_time(self) -> float:
+        return self.history.wall_time
+
+    def _model_value(self, x: Tensor, t: float) -> Tensor:
+        return self.model(x)
+
+    def __repr__(self):
+        e = self.metrics.get("E")
+        return (f"SteadyStateSolution(system={self.system.name!r}, E={e if e is None else f'{e:.3e}'}, "
+                f"wall_time={self.wall_time:.1f}s)")

@@ -1,0 +1,355 @@
+"""Control-affine systems as data: ``xdot = f(x) + g(x) u`` with cost ``Q(x) + u'Ru`` (paper eq. (1)-(2)).
+
+A :class:`ControlAffineSystem` holds batched torch callables ``f: (N,n) -> (N,n)``,
+``g: (N,n) -> (N,n,m)`` and ``Q: (N,n) -> (N,)``, the control weight ``R`` (m x m), the
+approximation set ``Omega`` (a box, where results are judged), the training box, and optionally
+the known optimal value ``V*`` and policy ``mu*``. Construction probes every function with a
+small batch and fails with a message naming the function and the shape it returned.
+
+Built-ins reproduce the paper's Section 6 with its constants: :func:`pendulum`, :func:`quartic`
+(with the erratum on its state cost, see there), :func:`third_order`, and :func:`linear_quadratic`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+import numpy as np
+import torch
+
+Tensor = torch.Tensor
+BatchFn = Callable[[Tensor], Tensor]
+
+__all__ = [
+    "ControlAffineSystem",
+    "pendulum",
+    "quartic",
+    "third_order",
+    "linear_quadratic",
+    "get_system",
+    "SYSTEMS",
+]
+
+
+def _as_box(box, n: int | None, what: str) -> np.ndarray:
+    arr = np.asarray(box, dtype=float)
+    if arr.ndim == 1 and arr.shape == (2,) and n is not None:
+        arr = np.tile(arr, (n, 1))
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{what} must be a box of shape (n, 2) (rows [low, high]) or (2,); got shape {arr.shape}")
+    if n is not None and arr.shape[0] != n:
+        raise ValueError(f"{what} has {arr.shape[0]} rows but the state has dimension n={n}")
+    if not np.all(np.isfinite(arr)) or np.any(arr[:, 1] <= arr[:, 0]):
+        raise ValueError(f"{what} needs finite bounds with low < high in every row; got {arr.tolist()}")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class ControlAffineSystem:
+    """A control-affine system with quadratic-in-u cost (paper eqs. (1)-(2)).
+
+    Parameters
+    ----------
+    name : label (built-ins use their registry name so checkpoints can rebuild them).
+    f, g, Q : batched torch callables, ``f(x)`` (N,n), ``g(x)`` (N,n,m), ``Q(x)`` (N,) for x (N,n).
+    R : (m, m) symmetric positive definite control weight.
+    domain : Omega, the approximation set where E and errors are measured, box (n, 2).
+    train_domain : box sampled during training (defaults to ``domain``; the paper enlarges it).
+    value_star, policy_star : optional known V* (N,) and mu* (N,m) for error reports.
+    params, builder : a registry name and keyword arguments that rebuild a built-in via
+        :func:`get_system` (used by storage); ``None`` for a user's own system.
+    """
+
+    name: str
+    f: BatchFn
+    g: BatchFn
+    Q: BatchFn
+    R: Any
+    domain: Any
+    train_domain: Any = None
+    value_star: Optional[BatchFn] = None
+    policy_star: Optional[BatchFn] = None
+    params: Optional[dict] = None
+    builder: Optional[str] = None
+    n: int = field(init=False)
+    m: int = field(init=False)
+
+    def __post_init__(self):
+        dom = np.asarray(self.domain, dtype=float)
+        n_guess = dom.shape[0] if dom.ndim == 2 else None
+        dom = _as_box(self.domain, n_guess, "domain (Omega)")
+        n = dom.shape[0]
+        train = _as_box(dom if self.train_domain is None else self.train_domain, n, "train_domain")
+        R = np.atleast_2d(np.asarray(self.R, dtype=float))
+        if R.ndim != 2 or R.shape[0] != R.shape[1]:
+            raise ValueError(f"R must be a square (m, m) matrix; got shape {R.shape}")
+        if not np.all(np.isfinite(R)):
+            raise ValueError("R contains NaN or infinite entries")
+        if not np.allclose(R, R.T, rtol=1e-10, atol=1e-12):
+            raise ValueError("R must be symmetric")
+        if np.linalg.eigvalsh(R).min() <= 0:
+            raise ValueError(f"R must be positive definite; its eigenvalues are {np.linalg.eigvalsh(R).tolist()}")
+        m = R.shape[0]
+        object.__setattr__(self, "domain", dom)
+        object.__setattr__(self, "train_domain", train)
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "n", n)
+        object.__setattr__(self, "m", m)
+        self._check_functions()
+
+    # ------------------------------------------------------------------ validation
+    def _check_functions(self):
+        n, m = self.n, self.m
+        gen = torch.Generator().manual_seed(0)
+        lo = torch.as_tensor(self.train_domain[:, 0])
+        hi = torch.as_tensor(self.train_domain[:, 1])
+        probe = lo + (hi - lo) * torch.rand(5, n, generator=gen, dtype=torch.float64)
+        expected = {"f": (5, n), "g": (5, n, m), "Q": (5,), "value_star": (5,), "policy_star": (5, m)}
+        for key, shape in expected.items():
+            fn = getattr(self, key)
+            if fn is None:
+                continue
+            try:
+                out = fn(probe)
+            except Exception as exc:  # noqa: BLE001 - re-raised with context
+                raise ValueError(f"system '{self.name}': {key}(x) failed on a probe batch x of shape (5, {n}): {exc}") from exc
+            if not isinstance(out, torch.Tensor):
+                raise TypeError(f"system '{self.name}': {key}(x) must return a torch.Tensor; got {type(out).__name__}")
+            if tuple(out.shape) != shape:
+                raise ValueError(
+                    f"system '{self.name}': {key}(x) returned shape {tuple(out.shape)} for x of shape (5, {n}); "
+                    f"expected {shape}"
+                )
+            if not torch.all(torch.isfinite(out)):
+                raise ValueError(f"system '{self.name}': {key}(x) returned NaN or inf on a probe batch")
+        zero = torch.zeros(1, n, dtype=torch.float64)
+        f0 = self.f(zero)
+        if f0.abs().max() > 1e-10:
+            raise ValueError(f"system '{self.name}': f(0) must be 0 (the origin is an equilibrium); got {f0.tolist()}")
+        q0 = self.Q(zero)
+        if q0.abs().max() > 1e-10:
+            raise ValueError(f"system '{self.name}': Q(0) must be 0 (Q positive definite); got {q0.item()}")
+        if torch.any(self.Q(probe) < 0):
+            raise ValueError(f"system '{self.name}': Q(x) is negative on a probe point; Q must be positive definite")
+
+    # ------------------------------------------------------------------ core operators
+    def R_tensor(self, like: Tensor) -> Tensor:
+        return torch.as_tensor(self.R, dtype=like.dtype, device=like.device)
+
+    def R_inv_tensor(self, like: Tensor) -> Tensor:
+        return torch.as_tensor(np.linalg.inv(self.R), dtype=like.dtype, device=like.device)
+
+    def check_states(self, x: Tensor, what: str = "x") -> Tensor:
+        """Validate a batch of states: a tensor of shape (N, n) with finite entries."""
+        if not isinstance(x, torch.Tensor):
+            x = torch.as_tensor(np.asarray(x))
+        if x.ndim != 2 or x.shape[1] != self.n:
+            raise ValueError(f"{what} must have shape (N, {self.n}) for system '{self.name}'; got {tuple(x.shape)}")
+        if not torch.all(torch.isfinite(x)):
+            raise ValueError(f"{what} contains NaN or infinite entries")
+        return x
+
+    def policy_from_gradient(self, x: Tensor, grad_v: Tensor) -> Tensor:
+        """mu(x) = -1/2 R^{-1} g(x)' grad V(x)  (paper eqs. (3), (6), (13)); returns (N, m)."""
+        gTp = torch.einsum("bnm,bn->bm", self.g(x), grad_v)
+        return -0.5 * gTp @ self.R_inv_tensor(x).T
+
+    def hamiltonian_min(self, x: Tensor, grad_v: Tensor, fx: Tensor | None = None, gx: Tensor | None = None,
+                        qx: Tensor | None = None) -> Tensor:
+        """min_u H(x, u, p) = p'f + Q - 1/4 p' g R^{-1} g' p: the left side of the steady-state HJB (eq. (4)).
+
+        With p = grad_x V(x, t) and ``+ dV/dt`` it is the flow residual F_e of eq. (5)/(HJBT); at t = 0 it
+        is the infinite-horizon flow residual E_e of eq. (flow_res). ``fx, gx, qx`` may be passed when
+        cached.
+        """
+        fx = self.f(x) if fx is None else fx
+        gx = self.g(x) if gx is None else gx
+        qx = self.Q(x) if qx is None else qx
+        gTp = torch.einsum("bnm,bn->bm", gx, grad_v)
+        quad = torch.einsum("bi,ij,bj->b", gTp, self.R_inv_tensor(x), gTp)
+        return (grad_v * fx).sum(-1) + qx - 0.25 * quad
+
+    def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
+        """xdot = f(x) + g(x) u  (eq. (1))."""
+        return self.f(x) + torch.einsum("bnm,bm->bn", self.g(x), u)
+
+    def running_cost(self, x: Tensor, u: Tensor) -> Tensor:
+        """Q(x) + u'Ru, the integrand of eq. (2)."""
+        return self.Q(x) + torch.einsum("bi,ij,bj->b", u, self.R_tensor(u), u)
+
+    # ------------------------------------------------------------------ sampling helpers
+    def grid(self, points_per_dim: int, dtype=torch.float64, device=None, box: np.ndarray | None = None) -> Tensor:
+        """A tensor-product grid over Omega (or ``box``): shape (points_per_dim**n, n)."""
+        box = self.domain if box is None else box
+        axes = [torch.linspace(float(lo), float(hi), points_per_dim, dtype=dtype, device=device) for lo, hi in box]
+        mesh = torch.meshgrid(*axes, indexing="ij")
+        return torch.stack([m.reshape(-1) for m in mesh], dim=-1)
+
+    def sample(self, count: int, generator: torch.Generator, dtype=torch.float32, device=None,
+               box: np.ndarray | None = None) -> Tensor:
+        """Uniform samples from the training box (or ``box``): shape (count, n)."""
+        box = self.train_domain if box is None else box
+        lo = torch.as_tensor(box[:, 0], dtype=dtype, device=device)
+        hi = torch.as_tensor(box[:, 1], dtype=dtype, device=device)
+        u = torch.rand(count, self.n, generator=generator, dtype=dtype, device=generator.device)
+        return lo + (hi - lo) * u.to(device)
+
+    def spec(self) -> dict:
+        """What storage needs to rebuild this system: its registry name and parameters."""
+        return {"name": self.name, "builder": self.builder,
+                "params": dict(self.params) if self.params is not None else None, "n": self.n, "m": self.m}
+
+    def __repr__(self):
+        return (f"ControlAffineSystem(name={self.name!r}, n={self.n}, m={self.m}, R={self.R.tolist()}, "
+                f"domain={self.domain.tolist()}, known V*={self.value_star is not None})")
+
+
+# ====================================================================== built-in systems
+
+def pendulum(R: float = 1.0) -> ControlAffineSystem:
+    """Torsional pendulum of Section 6.1: M = 1/3 kg, l = 2/3 m, J = 4/3 M l^2, f_d = 0.2, g = 9.8.
+
+    f(x) = [x2, (-M g l sin x1 - f_d x2)/J], g(x) = [0, 1/J]', Q(x) = x1^2 + x2^2, R = 1,
+    Omega = [-1, 1]^2, trained on [-1.5, 1.5]^2 as in the paper.
+    """
+    M, l, fd, grav = 1.0 / 3.0, 2.0 / 3.0, 0.2, 9.8
+    J = 4.0 / 3.0 * M * l**2
+
+    def f(x):
+        return torch.stack([x[:, 1], (-M * grav * l * torch.sin(x[:, 0]) - fd * x[:, 1]) / J], dim=-1)
+
+    def g(x):
+        out = torch.zeros(x.shape[0], 2, 1, dtype=x.dtype, device=x.device)
+        out[:, 1, 0] = 1.0 / J
+        return out
+
+    def Q(x):
+        return (x**2).sum(-1)
+
+    return ControlAffineSystem("pendulum", f, g, Q, [[R]], domain=[[-1, 1], [-1, 1]],
+                               train_domain=[[-1.5, 1.5], [-1.5, 1.5]], params={"R": float(R)}, builder="pendulum")
+
+
+QUARTIC_STATE_COSTS = ("consistent", "paper")
+
+
+def quartic(state_cost: str = "consistent") -> ControlAffineSystem:
+    """System with a known quartic value function (Section 6.2, from Vrabie & Lewis 2009).
+
+    f(x) = [-x1 + x2 + 2 x2^3, -(x1 + x2)/2 + x2 (1 + 2 x2^2) sin^2(x1) / 2], g(x) = [0, sin x1]', R = 1,
+    V*(x) = x1^2/2 + x2^2 + x2^4, mu*(x) = -sin(x1)(x2 + 2 x2^3), Omega = [-1.2, 1.2]^2 (trained on
+    [-1.5, 1.5]^2).
+
+    **Erratum.** The paper prints Q(x) = x1^2 + x2^2 + x2^4, but the stated V* solves the HJB (4) only for
+    Q(x) = x1^2 + x2^2 + 2 x2^4: with the printed Q the HJB residual of V* is exactly -x2^4. The default
+    ``state_cost="consistent"`` uses the Q for which V* is optimal; ``state_cost="paper"`` keeps the
+    printed Q (then V* and mu* are *not* optimal and are not attached).
+    """
+    if state_cost not in QUARTIC_STATE_COSTS:
+        raise ValueError(f"state_cost must be one of {QUARTIC_STATE_COSTS}; got {state_cost!r}")
+    c4 = 2.0 if state_cost == "consistent" else 1.0
+
+    def f(x):
+        x1, x2 = x[:, 0], x[:, 1]
+        return torch.stack([-x1 + x2 + 2 * x2**3,
+                            -0.5 * (x1 + x2) + 0.5 * x2 * (1 + 2 * x2**2) * torch.sin(x1) ** 2], dim=-1)
+
+    def g(x):
+        out = torch.zeros(x.shape[0], 2, 1, dtype=x.dtype, device=x.device)
+        out[:, 1, 0] = torch.sin(x[:, 0])
+        return out
+
+    def Q(x):
+        return x[:, 0] ** 2 + x[:, 1] ** 2 + c4 * x[:, 1] ** 4
+
+    def value_star(x):
+        return 0.5 * x[:, 0] ** 2 + x[:, 1] ** 2 + x[:, 1] ** 4
+
+    def policy_star(x):
+        return (-torch.sin(x[:, 0]) * (x[:, 1] + 2 * x[:, 1] ** 3)).unsqueeze(-1)
+
+    known = state_cost == "consistent"
+    return ControlAffineSystem("quartic", f, g, Q, [[1.0]], domain=[[-1.2, 1.2], [-1.2, 1.2]],
+                               train_domain=[[-1.5, 1.5], [-1.5, 1.5]],
+                               value_star=value_star if known else None,
+                               policy_star=policy_star if known else None,
+                               params={"state_cost": state_cost}, builder="quartic")
+
+
+def third_order(R: float = 1.0) -> ControlAffineSystem:
+    """Third-order system of Section 6.3: K = 0.05, C = 3.5, a = 5.5, b = 4, Q(x) = |x|^2.
+
+    f(x) = [-2 x1 + x2^3, -C x2 + x3, -K (a x2^3 + b x2 + x1^3)], g(x) = [0, 0, K]', Omega = [-0.2, 0.2]^3.
+    The paper does not state an enlarged training set for this case; we train on [-0.25, 0.25]^3
+    (the same 1.25x margin as the quartic system) and judge on Omega.
+    """
+    K, C, a, b = 0.05, 3.5, 5.5, 4.0
+
+    def f(x):
+        x1, x2, x3 = x[:, 0], x[:, 1], x[:, 2]
+        return torch.stack([-2 * x1 + x2**3, -C * x2 + x3, -K * (a * x2**3 + b * x2 + x1**3)], dim=-1)
+
+    def g(x):
+        out = torch.zeros(x.shape[0], 3, 1, dtype=x.dtype, device=x.device)
+        out[:, 2, 0] = K
+        return out
+
+    def Q(x):
+        return (x**2).sum(-1)
+
+    return ControlAffineSystem("third_order", f, g, Q, [[R]], domain=[[-0.2, 0.2]] * 3,
+                               train_domain=[[-0.25, 0.25]] * 3, params={"R": float(R)}, builder="third_order")
+
+
+def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") -> ControlAffineSystem:
+    """Linear system xdot = A x + B u with cost x'Qx + u'Ru; V*(x) = x'Px with P the stabilizing CARE
+    solution (scipy), mu*(x) = -R^{-1} B' P x."""
+    from . import lq  # local import: lq is numpy/scipy only
+
+    A = np.atleast_2d(np.asarray(A, dtype=float))
+    B = np.asarray(B, dtype=float)
+    B = B.reshape(-1, 1) if B.ndim == 1 else B
+    Qm = np.atleast_2d(np.asarray(Q, dtype=float))
+    Rm = np.atleast_2d(np.asarray(R, dtype=float))
+    P = lq.care(A, B, Qm, Rm)
+    K = np.linalg.solve(Rm, B.T @ P)
+
+    def mat(M, like):
+        return torch.as_tensor(M, dtype=like.dtype, device=like.device)
+
+    def f(x):
+        return x @ mat(A, x).T
+
+    def g(x):
+        return mat(B, x).expand(x.shape[0], *B.shape)
+
+    def Qf(x):
+        return torch.einsum("bi,ij,bj->b", x, mat(Qm, x), x)
+
+    def value_star(x):
+        return torch.einsum("bi,ij,bj->b", x, mat(P, x), x)
+
+    def policy_star(x):
+        return -x @ mat(K, x).T
+
+    params = {"A": A.tolist(), "B": B.tolist(), "Q": Qm.tolist(), "R": Rm.tolist(),
+              "domain": np.asarray(domain, dtype=float).tolist(),
+              "train_domain": None if train_domain is None else np.asarray(train_domain, dtype=float).tolist(),
+              "name": name}
+    return ControlAffineSystem(name, f, g, Qf, Rm, domain=domain, train_domain=train_domain,
+                               value_star=value_star, policy_star=policy_star, params=params, builder="lq")
+
+
+SYSTEMS: dict[str, Callable[..., ControlAffineSystem]] = {
+    "pendulum": pendulum,
+    "quartic": quartic,
+    "third_order": third_order,
+    "lq": linear_quadratic,
+}
+
+
+def get_system(name: str, /, **params) -> ControlAffineSystem:
+    """Build a registered system by name (``pendulum``, ``quartic``, ``third_order``, ``lq``)."""
+    if name not in SYSTEMS:
+        raise KeyError(f"unknown system {name!r}; known systems: {sorted(SYSTEMS)}")
+    return SYSTEMS[name](**params)

@@ -1,0 +1,325 @@
+"""Training one stage: the finite-horizon PINN of Algorithm 1 and the direct steady-state baseline.
+
+The loss is the paper's eq. (MSE): MSE_e (flow residual F_e) + MSE_b (terminal residual F_b) + MSE_in
+(origin residual F_in); under the ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue` the last two are zero
+by construction and only MSE_e is minimised. f, g, Q and the terminal cost phi (with its gradient) are
+evaluated once per stage on a pool of states and then indexed, so a frozen chain of previous stages
+costs nothing per step.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from .config import TrainConfig
+from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
+
+Tensor = torch.Tensor
+
+__all__ = ["TrainHistory", "train_finite_horizon", "train_steady_state", "resolve_device", "DTYPES"]
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def resolve_device(device=None) -> torch.device:
+    """``None``/"auto" picks CUDA when present, else CPU; anything else is passed to torch.device."""
+    if device is None or device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device={device!r} requested but CUDA is not available on this machine")
+    return dev
+
+
+@dataclass
+class TrainHistory:
+    """Loss and wall time along training; ``stop_reason`` says why Adam stopped."""
+
+    step: list = field(default_factory=list)
+    loss: list = field(default_factory=list)
+    wall: list = field(default_factory=list)
+    phase: list = field(default_factory=list)
+    stop_reason: str = ""
+    wall_time: float = 0.0
+    final_loss: float = float("nan")
+
+    def record(self, step: int, loss: float, wall: float, phase: str):
+        self.step.append(int(step))
+        self.loss.append(float(loss))
+        self.wall.append(float(wall))
+        self.phase.append(phase)
+
+    def to_dict(self) -> dict:
+        return {"step": list(self.step), "loss": list(self.loss), "wall": list(self.wall), "phase": list(self.phase),
+                "stop_reason": self.stop_reason, "wall_time": self.wall_time, "final_loss": self.final_loss}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainHistory":
+        return cls(**d)
+
+
+# ---------------------------------------------------------------------- cached data
+
+class _Data:
+    """States with cached f(x), g(x), Q(x), phi(x), grad phi(x); indexed to form batches."""
+
+    def __init__(self, system, x: Tensor, terminal=None, need_phi_grad: bool = False, chunk: int = 8192):
+        self.x = x
+        with torch.no_grad():
+            self.fx = system.f(x)
+            self.gx = system.g(x)
+            self.qx = system.Q(x)
+        self.phi = self.dphi = None
+        if terminal is not None:
+            phis, grads = [], []
+            for xc in torch.split(x, chunk):
+                if need_phi_grad:
+                    v, gphi = gradient(terminal, xc)
+                    grads.append(gphi.detach())
+                else:
+                    with torch.no_grad():
+                        v = terminal(xc)
+                phis.append(v.detach())
+            self.phi = torch.cat(phis)
+            self.dphi = torch.cat(grads) if grads else None
+
+    def __len__(self):
+        return self.x.shape[0]
+
+    def take(self, idx: Tensor) -> dict:
+        out = {"x": self.x[idx], "fx": self.fx[idx], "gx": self.gx[idx], "qx": self.qx[idx]}
+        if self.phi is not None:
+            out["phi"] = self.phi[idx]
+        if self.dphi is not None:
+            out["dphi"] = self.dphi[idx]
+        return out
+
+
+# ---------------------------------------------------------------------- losses
+
+def _finite_horizon_loss(system, model: FiniteHorizonValue, flow: dict, t: Tensor, boundary: dict | None,
+                         t_origin: Tensor | None) -> Tensor:
+    """MSE of eq. (MSE) for one batch. ``flow`` holds cached states; phi's gradient is added under the ansatz."""
+    x = flow["x"].detach().requires_grad_(True)
+    t = t.detach().requires_grad_(True)
+    c = model.correction(x, t)
+    gx, gt = torch.autograd.grad(c.sum(), (x, t), create_graph=True)
+    if model.ansatz:
+        gx = gx + flow["dphi"]
+    f_e = gt + system.hamiltonian_min(x, gx, flow["fx"], flow["gx"], flow["qx"])
+    loss = (f_e**2).mean()
+    if not model.ansatz:
+        xb = boundary["x"]
+        t_end = torch.full((xb.shape[0],), model.horizon, dtype=xb.dtype, device=xb.device)
+        f_b = model.raw(xb, t_end) - boundary["phi"]
+        f_in = model.raw(torch.zeros(t_origin.shape[0], xb.shape[1], dtype=xb.dtype, device=xb.device), t_origin)
+        loss = loss + (f_b**2).mean() + (f_in**2).mean()
+    return loss
+
+
+def _steady_state_loss(system, model: SteadyStateValue, flow: dict) -> Tensor:
+    """MSE of the steady-state HJB (4): mean E_e^2 (+ V(0)^2 when not enforced by the ansatz)."""
+    x = flow["x"].detach().requires_grad_(True)
+    v = model(x)
+    (gx,) = torch.autograd.grad(v.sum(), x, create_graph=True)
+    e = system.hamiltonian_min(x, gx, flow["fx"], flow["gx"], flow["qx"])
+    loss = (e**2).mean()
+    if not model.ansatz:
+        loss = loss + model(torch.zeros_like(x[:1])).pow(2).sum()
+    return loss
+
+
+# ---------------------------------------------------------------------- the optimisation loop
+
+def _lr_factor(config: TrainConfig):
+    K = max(config.adam_steps, 1)
+    if config.schedule == "cosine":
+        r = config.lr_final_ratio
+        return lambda k: r + (1 - r) * 0.5 * (1 + math.cos(math.pi * min(k, K) / K))
+    if config.schedule == "inverse_time":
+        return lambda k: 1.0 / (1.0 + config.lr_decay * k)
+    return lambda k: 1.0
+
+
+def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str, progress: bool) -> TrainHistory:
+    """Adam (resampled batches, or epochs of fixed mini-batches with the paper's stop rule), then L-BFGS.
+
+    ``sample(size)`` returns a fresh batch; ``epochs()`` yields lists of mini-batches (fixed data).
+    """
+    params = list(params)
+    hist = TrainHistory()
+    start = time.perf_counter()
+    opt = torch.optim.Adam(params, lr=config.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(config))
+    bar = tqdm(total=config.adam_steps + config.lbfgs_steps, desc=desc, disable=not progress, leave=False,
+               dynamic_ncols=True)
+    step = 0
+
+    def adam_step(batch) -> float:
+        nonlocal step
+        opt.zero_grad(set_to_none=True)
+        loss = batch_loss(batch)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"{desc}: loss became {loss.item()} at Adam step {step}; lower lr or check the system")
+        loss.backward()
+        opt.step()
+        sched.step()
+        step += 1
+        value = loss.item()
+        if step % config.log_every == 0 or step == 1:
+            hist.record(step, value, time.perf_counter() - start, "adam")
+            bar.set_postfix(loss=f"{value:.3e}", refresh=False)
+        bar.update(1)
+        return value
+
+    def out_of_time() -> bool:
+        return config.max_time is not None and time.perf_counter() - start > config.max_time
+
+    hist.stop_reason = "adam_steps"
+    if config.sampling == "resample":
+        while step < config.adam_steps:
+            adam_step(sample(config.batch_size))
+            if out_of_time():
+                hist.stop_reason = "max_time"
+                break
+    else:
+        done = False
+        while not done:
+            all_below = True
+            for batch in epochs():
+                value = adam_step(batch)
+                all_below &= config.stop_loss is not None and value < config.stop_loss
+                if step >= config.adam_steps:
+                    done = True
+                    break
+                if out_of_time():
+                    hist.stop_reason, done = "max_time", True
+                    break
+            else:
+                if all_below:
+                    hist.stop_reason, done = "stop_loss", True
+    evals = 0
+    if config.lbfgs_steps > 0:
+        batch = sample(config.lbfgs_points)
+        lbfgs = torch.optim.LBFGS(params, lr=1.0, max_iter=config.lbfgs_steps, history_size=50,
+                                  tolerance_grad=1e-12, tolerance_change=1e-15, line_search_fn="strong_wolfe")
+
+        def closure():
+            nonlocal evals
+            lbfgs.zero_grad(set_to_none=True)
+            loss = batch_loss(batch)
+            loss.backward()
+            evals += 1
+            if evals % config.log_every == 0:
+                hist.record(step + evals, loss.item(), time.perf_counter() - start, "lbfgs")
+                bar.set_postfix(loss=f"{loss.item():.3e}", refresh=False)
+            bar.update(1)
+            return loss
+
+        before = [p.detach().clone() for p in params]
+        lbfgs.step(closure)
+        final = batch_loss(batch)
+        if not torch.isfinite(final):  # a diverged line search must not destroy the Adam result
+            with torch.no_grad():
+                for p, b in zip(params, before):
+                    p.copy_(b)
+            final = batch_loss(batch)
+        hist.final_loss = final.item()
+    else:
+        hist.final_loss = hist.loss[-1] if hist.loss else float("nan")
+    hist.wall_time = time.perf_counter() - start
+    hist.record(step + evals, hist.final_loss, hist.wall_time, "final")
+    bar.close()
+    return hist
+
+
+def _generator(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(int(seed))
+
+
+def _randint(gen, high: int, size: int, device) -> Tensor:
+    return torch.randint(high, (size,), generator=gen).to(device)
+
+
+def _uniform(gen, size: int, scale: float, dtype, device) -> Tensor:
+    return (scale * torch.rand(size, generator=gen, dtype=torch.float64)).to(dtype=dtype, device=device)
+
+
+def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig, seed: int = 0,
+                         progress: bool = True, desc: str = "stage") -> TrainHistory:
+    """Train ``model`` in place on the finite-horizon HJB over Omega x [0, model.horizon] (Algorithm 1)."""
+    p = next(model.parameters())
+    dtype, device = p.dtype, p.device
+    gen = _generator(seed)
+    T = model.horizon
+    terminal = model.terminal_cost
+    n_pool = config.pool_size if config.sampling == "resample" else config.n_flow
+    pool = _Data(system, system.sample(n_pool, gen, dtype=dtype, device=device), terminal,
+                 need_phi_grad=model.ansatz)
+    bnd = None
+    if not model.ansatz:
+        n_b = config.n_boundary if config.sampling == "fixed" else config.pool_size
+        bnd = _Data(system, system.sample(n_b, gen, dtype=dtype, device=device), terminal)
+
+    def batch_loss(batch):
+        return _finite_horizon_loss(system, model, *batch)
+
+    def sample(size):
+        flow = pool.take(_randint(gen, len(pool), size, device))
+        t = _uniform(gen, size, T, dtype, device)
+        if model.ansatz:
+            return flow, t, None, None
+        nb = max(1, size * config.n_boundary // max(config.n_flow, 1))
+        return flow, t, bnd.take(_randint(gen, len(bnd), nb, device)), _uniform(gen, nb, T, dtype, device)
+
+    t_flow = _uniform(gen, len(pool), T, dtype, device)
+    t_origin = _uniform(gen, config.n_origin, T, dtype, device)
+
+    def epochs():
+        n_batches = max(1, len(pool) // config.batch_size)
+        perm = torch.randperm(len(pool), generator=gen).to(device)
+        perm_b = torch.randperm(len(bnd), generator=gen).to(device) if bnd is not None else None
+        perm_o = torch.randperm(config.n_origin, generator=gen).to(device)
+        for b in range(n_batches):
+            idx = perm[b * config.batch_size:(b + 1) * config.batch_size]
+            if model.ansatz:
+                yield pool.take(idx), t_flow[idx], None, None
+            else:
+                ib = perm_b[b::n_batches]
+                io = perm_o[b::n_batches]
+                yield pool.take(idx), t_flow[idx], bnd.take(ib), t_origin[io]
+
+    params = [q for q in model.net.parameters()]
+    return _optimize(params, batch_loss, sample, epochs, config, desc, progress)
+
+
+def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, seed: int = 0,
+                       progress: bool = True, desc: str = "steady state") -> TrainHistory:
+    """Train ``model`` in place on the steady-state HJB (4) directly (the paper's T = infinity baseline)."""
+    p = next(model.parameters())
+    dtype, device = p.dtype, p.device
+    gen = _generator(seed)
+    n_pool = config.pool_size if config.sampling == "resample" else config.n_flow
+    pool = _Data(system, system.sample(n_pool, gen, dtype=dtype, device=device))
+
+    def sample(size):
+        return pool.take(_randint(gen, len(pool), size, device))
+
+    def epochs():
+        perm = torch.randperm(len(pool), generator=gen).to(device)
+        for b in range(max(1, len(pool) // config.batch_size)):
+            yield pool.take(perm[b * config.batch_size:(b + 1) * config.batch_size])
+
+    return _optimize(model.net.parameters(), lambda batch: _steady_state_loss(system, model, batch), sample,
+                     epochs, config, desc, progress)
+
+
+def numpy_seed_everything(seed: int):
+    """Seed torch's global RNG (network initialisation) and numpy."""
+    torch.manual_seed(int(seed))
+    np.random.seed(int(seed) % (2**32))
