@@ -31,7 +31,8 @@ def _parse_params(items: list[str]) -> dict:
     return params
 
 
-def _print_metrics(metrics: dict, stream=sys.stdout):
+def _print_metrics(metrics: dict, stream=None):
+    stream = sys.stdout if stream is None else stream
     for key, value in metrics.items():
         print(f"  {key:>18s} = {value:.6g}" if isinstance(value, float) else f"  {key:>18s} = {value}", file=stream)
 
@@ -107,7 +108,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (KeyError, ValueError, FileNotFoundError) as exc:
+    except (KeyError, ValueError, TypeError, RuntimeError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
 
+from .pinn import ACTIVATIONS
+
 __all__ = ["TrainConfig", "PAPER_SETTINGS", "PRESETS"]
 
 # The paper's Section 6 settings per example. Omitted entries (third-order learning rate and decay)
@@ -70,6 +72,13 @@ class TrainConfig:
             "width": self.width >= 1, "depth": self.depth >= 1, "batch_size": self.batch_size >= 1,
             "pool_size": self.pool_size >= 1, "adam_steps": self.adam_steps >= 0,
             "lbfgs_steps": self.lbfgs_steps >= 0, "lr": self.lr > 0, "log_every": self.log_every >= 1,
+            "lr_decay": self.lr_decay >= 0, "lbfgs_points": self.lbfgs_points >= 1,
+            "n_flow": self.n_flow >= 1, "n_boundary": self.n_boundary >= 1, "n_origin": self.n_origin >= 1,
+            "lr_final_ratio": 0 <= self.lr_final_ratio <= 1,
+            "max_time": self.max_time is None or self.max_time > 0,
+            "stop_loss": self.stop_loss is None or self.stop_loss > 0,
+            "eval_points_per_dim": self.eval_points_per_dim is None or self.eval_points_per_dim >= 2,
+            "activation": self.activation in ACTIVATIONS,
             "dtype": self.dtype in ("float32", "float64"),
             "sampling": self.sampling in ("resample", "fixed"),
             "schedule": self.schedule in ("cosine", "inverse_time", "constant"),

@@ -63,7 +63,7 @@ class _Scaled(nn.Module):
 
     def __init__(self, train_domain):
         super().__init__()
-        box = torch.as_tensor(np.asarray(train_domain, dtype=float))
+        box = torch.as_tensor(np.asarray(train_domain, dtype=float), dtype=torch.get_default_dtype())
         self.register_buffer("center", (box[:, 0] + box[:, 1]) / 2)
         self.register_buffer("halfwidth", (box[:, 1] - box[:, 0]) / 2)
 
@@ -77,7 +77,7 @@ class ZeroTerminalCost(nn.Module):
     """phi = 0 (the paper's choice in all its simulations)."""
 
     def forward(self, x: Tensor) -> Tensor:
-        return torch.zeros(x.shape[0], dtype=x.dtype, device=x.device) + 0.0 * x.sum(-1)
+        return torch.zeros(x.shape[0], dtype=x.dtype, device=x.device)
 
     def spec(self) -> dict:
         return {"kind": "zero"}
@@ -193,8 +193,10 @@ def gradient(fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = Fal
     with torch.enable_grad():
         x = x.detach().requires_grad_(True)
         v = fn(x)
-        (g,) = torch.autograd.grad(v.sum(), x, create_graph=create_graph)
-    return v, g
+        if not v.requires_grad:  # V does not depend on x (e.g. phi = 0)
+            return v, torch.zeros_like(x)
+        (g,) = torch.autograd.grad(v.sum(), x, create_graph=create_graph, allow_unused=True)
+    return v, torch.zeros_like(x) if g is None else g
 
 
 def value_and_gradients(model: FiniteHorizonValue, x: Tensor, t: Tensor | float, create_graph: bool = False):

@@ -80,9 +80,9 @@ class FiniteHorizonSolver(_Solver):
         torch.manual_seed(seed)
         model = FiniteHorizonValue(self.system.n, length, self.system.train_domain, terminal, width=cfg.width,
                                    depth=cfg.depth, activation=cfg.activation, ansatz=cfg.ansatz)
+        model = model.to(device=self.device, dtype=self.dtype)
         if init is not None and cfg.warm_start:
             model.net.load_state_dict(init.net.state_dict())
-        model = model.to(device=self.device, dtype=self.dtype)
         desc = f"{self.system.name} T={start:g}->{start + length:g}"
         history = train_finite_horizon(self.system, model, cfg, seed=seed, progress=self.progress, desc=desc)
         for p in model.parameters():

@@ -78,6 +78,8 @@ def save(solution, path, **extra) -> Path:
 
     A user's own system (not in the registry) is stored by name and dimensions only; pass it to
     :func:`load` again. ``extra`` key/values are added to the provenance record."""
+    if not isinstance(solution, (FiniteHorizonSolution, SteadyStateSolution)):
+        raise TypeError(f"cannot save a {type(solution).__name__}")
     path = Path(path)
     spec = solution.system.spec()
     base = {"format": FORMAT, "version": FORMAT_VERSION, "system": spec, "config": solution.config.to_dict(),
@@ -91,12 +93,10 @@ def save(solution, path, **extra) -> Path:
                     stages=[{"start": s.start, "length": s.length, "seed": s.seed, "state": _state(s.model),
                              "history": s.history.to_dict(), "metrics": _plain(s.metrics)}
                             for s in solution.stages])
-    elif isinstance(solution, SteadyStateSolution):
+    else:
         base.update(kind="steady_state", seed=solution.seed, state=_state(solution.model),
                     history=solution.history.to_dict(), metrics=_plain(solution.metrics),
                     wall_time=solution.wall_time)
-    else:
-        raise TypeError(f"cannot save a {type(solution).__name__}")
     _atomic_torch_save(base, path)
     return path
 
@@ -152,9 +152,9 @@ def load(path, system=None, device=None, config: TrainConfig | None = None):
     net_kw = dict(width=stored.width, depth=stored.depth, activation=stored.activation, ansatz=stored.ansatz)
 
     if ckpt["kind"] == "steady_state":
-        model = SteadyStateValue(system.n, system.train_domain, **net_kw)
+        model = SteadyStateValue(system.n, system.train_domain, **net_kw).to(dev, dtype)
         _load_state(model, ckpt["state"], "steady-state model")
-        model = model.to(dev, dtype).eval().requires_grad_(False)
+        model = model.eval().requires_grad_(False)
         sol = SteadyStateSolution(system, stored, model, TrainHistory.from_dict(ckpt["history"]), ckpt["seed"],
                                   ckpt["metrics"])
     else:
@@ -163,9 +163,9 @@ def load(path, system=None, device=None, config: TrainConfig | None = None):
         stages: list[Stage] = []
         for i, st in enumerate(ckpt["stages"]):
             phi = terminal if i == 0 else ValueTerminalCost(stages[-1].model)
-            model = FiniteHorizonValue(system.n, st["length"], system.train_domain, phi, **net_kw)
+            model = FiniteHorizonValue(system.n, st["length"], system.train_domain, phi, **net_kw).to(dev, dtype)
             _load_state(model, st["state"], f"stage {i + 1}")
-            model = model.to(dev, dtype).eval().requires_grad_(False)
+            model = model.eval().requires_grad_(False)
             stages.append(Stage(model=model, start=st["start"], history=TrainHistory.from_dict(st["history"]),
                                 seed=st["seed"], metrics=st["metrics"]))
         sol = FiniteHorizonSolution(system, stored, stages, term, interrupted=ckpt.get("interrupted", False))

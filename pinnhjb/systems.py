@@ -76,7 +76,7 @@ class ControlAffineSystem:
 
     def __post_init__(self):
         dom = np.asarray(self.domain, dtype=float)
-        n_guess = dom.shape[0] if dom.ndim == 2 else None
+        n_guess = dom.shape[0] if dom.ndim == 2 else 1
         dom = _as_box(self.domain, n_guess, "domain (Omega)")
         n = dom.shape[0]
         train = _as_box(dom if self.train_domain is None else self.train_domain, n, "train_domain")

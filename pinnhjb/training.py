@@ -159,9 +159,10 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
     bar = tqdm(total=config.adam_steps + config.lbfgs_steps, desc=desc, disable=not progress, leave=False,
                dynamic_ncols=True)
     step = 0
+    last = float("nan")
 
     def adam_step(batch) -> float:
-        nonlocal step
+        nonlocal step, last
         opt.zero_grad(set_to_none=True)
         loss = batch_loss(batch)
         if not torch.isfinite(loss):
@@ -170,7 +171,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         opt.step()
         sched.step()
         step += 1
-        value = loss.item()
+        value = last = loss.item()
         if step % config.log_every == 0 or step == 1:
             hist.record(step, value, time.perf_counter() - start, "adam")
             bar.set_postfix(loss=f"{value:.3e}", refresh=False)
@@ -231,7 +232,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
             final = batch_loss(batch)
         hist.final_loss = final.item()
     else:
-        hist.final_loss = hist.loss[-1] if hist.loss else float("nan")
+        hist.final_loss = last
     hist.wall_time = time.perf_counter() - start
     hist.record(step + evals, hist.final_loss, hist.wall_time, "final")
     bar.close()

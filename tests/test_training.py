@@ -1,0 +1,316 @@
+"""Training (Algorithm 1), horizon extension (Theorem 2), solve_until, the steady-state baseline, TrainConfig.
+
+Every run is a few dozen Adam steps of the quick preset: enough to see the loss move, not to be accurate.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import pinnhjb as ph
+from pinnhjb.pinn import ValueTerminalCost
+
+FAST = dict(adam_steps=30, lbfgs_steps=0, eval_points_per_dim=11)
+PAPER_STYLE = dict(FAST, ansatz=False, sampling="fixed", schedule="inverse_time", lr_decay=0.002, n_flow=1024,
+                   n_boundary=256, n_origin=256, warm_start=False)
+
+
+def solver(config=None, seed=0, system=None, **overrides):
+    config = config or ph.TrainConfig.preset("quick", **{**FAST, **overrides})
+    return ph.FiniteHorizonSolver(system or ph.systems.pendulum(), config, seed=seed, device="cpu", progress=False)
+
+
+def assert_same_weights(a: torch.nn.Module, b: torch.nn.Module):
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    for key in sa:
+        assert torch.equal(sa[key], sb[key]), key
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return ph.systems.pendulum()
+
+
+@pytest.fixture(scope="module")
+def base(pendulum):
+    """One stage on [0, 0.5] with the default-style (ansatz) recipe, seed 0."""
+    return solver(system=pendulum).solve(0.5)
+
+
+@pytest.fixture(scope="module")
+def chain(pendulum, base):
+    """``base`` extended to T = 1.5 in steps of 0.5 (three stages)."""
+    return solver(system=pendulum).extend(base, to=1.5, step=0.5)
+
+
+@pytest.fixture(scope="module")
+def x_test():
+    return np.random.default_rng(0).uniform(-1, 1, (64, 2))
+
+
+# ------------------------------------------------------------------------------ the loss goes down
+def test_ansatz_training_lowers_the_loss(base):
+    hist = base.stages[0].history
+    assert hist.phase[0] == "adam" and hist.step[0] == 1 and hist.phase[-1] == "final"
+    assert hist.stop_reason == "adam_steps"
+    assert all(math.isfinite(v) for v in hist.loss)
+    assert hist.final_loss < 0.8 * hist.loss[0]
+    assert base.stages[0].model.ansatz
+
+
+def test_paper_style_training_lowers_the_loss(pendulum):
+    sol = solver(system=pendulum, **PAPER_STYLE).solve(0.5)
+    stage = sol.stages[0]
+    assert not stage.model.ansatz
+    assert sol.config.sampling == "fixed" and sol.config.schedule == "inverse_time"
+    assert stage.history.final_loss < 0.9 * stage.history.loss[0]
+    # V(0) = 0 is only a soft target here, so E carries a (nonnegative) boundary term
+    assert sol.metrics["E_boundary"] >= 0.0 and sol.metrics["E"] >= sol.metrics["E_flow"]
+
+
+def test_paper_stop_rule_ends_after_one_epoch(pendulum):
+    # every mini-batch loss below a huge threshold: stop at the end of the first epoch of 1024 / 256 batches
+    sol = solver(system=pendulum, **{**PAPER_STYLE, "stop_loss": 1e9, "adam_steps": 1000, "log_every": 1}).solve(0.5)
+    hist = sol.stages[0].history
+    assert hist.stop_reason == "stop_loss"
+    assert [s for s, ph_ in zip(hist.step, hist.phase) if ph_ == "adam"] == [1, 2, 3, 4]
+
+
+def test_max_time_caps_adam(pendulum):
+    sol = solver(system=pendulum, max_time=1e-9, adam_steps=1000).solve(0.5)
+    assert sol.stages[0].history.stop_reason == "max_time"
+    assert sol.stages[0].history.step[-1] == 1
+
+
+def test_metrics_are_attached_after_each_stage(base, chain):
+    for key in ("E", "E_flow", "E_boundary", "E_zero"):
+        assert math.isfinite(base.metrics[key])
+    assert base.metrics["E_boundary"] == 0.0  # V(0) = 0 under the ansatz
+    assert [row["horizon"] for row in chain.summary()] == [0.5, 1.0, 1.5]
+    assert all("E" in row for row in chain.summary())
+    assert chain.metrics == chain.stages[-1].metrics
+
+
+# ------------------------------------------------------------------------------ reproducibility
+@pytest.mark.parametrize("recipe", [FAST, PAPER_STYLE], ids=["ansatz", "paper-style"])
+def test_same_seed_repeats_bit_for_bit(pendulum, recipe):
+    a = solver(system=pendulum, seed=3, **recipe).solve(0.5)
+    b = solver(system=pendulum, seed=3, **recipe).solve(0.5)
+    assert_same_weights(a.stages[0].model, b.stages[0].model)
+    assert a.stages[0].history.loss == b.stages[0].history.loss
+    assert a.metrics == b.metrics
+
+
+def test_rerun_of_the_fixture_repeats(pendulum, base):
+    again = solver(system=pendulum, seed=0).solve(0.5)
+    assert_same_weights(base.stages[0].model, again.stages[0].model)
+    assert base.stages[0].history.loss == again.stages[0].history.loss
+
+
+def test_different_seed_differs(pendulum, base, x_test):
+    other = solver(system=pendulum, seed=1).solve(0.5)
+    assert other.stages[0].seed == 1 and base.stages[0].seed == 0
+    w0 = base.stages[0].model.net.state_dict()
+    w1 = other.stages[0].model.net.state_dict()
+    assert any(not torch.equal(w0[k], w1[k]) for k in w0)
+    assert base.stages[0].history.loss != other.stages[0].history.loss
+    assert np.abs(base.value(x_test) - other.value(x_test)).max() > 1e-4
+
+
+# ------------------------------------------------------------------------------ horizon extension
+def test_extension_chain_layout(base, chain):
+    assert chain.horizon == pytest.approx(1.5)
+    assert chain.horizons == pytest.approx([0.5, 1.0, 1.5])
+    assert [s.start for s in chain.stages] == pytest.approx([0.0, 0.5, 1.0])
+    assert [s.length for s in chain.stages] == pytest.approx([0.5, 0.5, 0.5])
+    assert [s.seed for s in chain.stages] == [0, 1, 2]  # stage k uses seed + k
+    assert chain.stages[0] is base.stages[0]  # the original stage is reused, not retrained
+    assert len(base.stages) == 1  # ... and the input solution is left alone
+    assert not chain.interrupted
+
+
+def test_extension_terminal_data_is_previous_stage_at_zero(chain, x_test):
+    x = torch.as_tensor(x_test, dtype=torch.float32)
+    for k in range(1, len(chain.stages)):
+        model = chain.stages[k].model
+        assert isinstance(model.terminal_cost, ValueTerminalCost)
+        with torch.no_grad():
+            phi = model.terminal_cost(x)
+            previous = chain.stages[k - 1].model(x, 0.0)
+            at_end = model(x, model.horizon)
+        assert torch.equal(phi, previous)
+        assert torch.equal(at_end, previous)  # v(x, T) = phi(x) exactly under the ansatz
+
+
+def test_chain_value_matches_truncated_solutions(chain, x_test):
+    # V_{T_K}(x, t) at t = T_K - T_{k} is V_{T_k}(x, 0)
+    for k in range(1, len(chain.stages)):
+        t = chain.horizon - chain.stages[k - 1].end
+        np.testing.assert_array_equal(chain.value(x_test, t), chain.truncated(k).value(x_test, 0.0))
+    last = chain.stages[-1].length
+    np.testing.assert_array_equal(chain.value(x_test, last), chain.truncated(len(chain.stages) - 1).value(x_test))
+    # and the extension did change the value at t = 0
+    assert np.abs(chain.value(x_test) - chain.truncated(1).value(x_test)).max() > 1e-4
+
+
+def test_value_time_outside_horizon_is_rejected(chain, x_test):
+    with pytest.raises(ValueError, match=r"t must lie in \[0, 1.5\]"):
+        chain.value(x_test, 1.6)
+    with pytest.raises(ValueError, match="t must lie"):
+        chain.value(x_test, -0.1)
+    with pytest.raises(ValueError, match="k must be"):
+        chain.truncated(4)
+
+
+def test_warm_start_copies_previous_weights(pendulum):
+    first = solver(system=pendulum, adam_steps=3).solve(0.5)
+    extended = solver(system=pendulum, adam_steps=0).extend(first, to=1.0)
+    assert_same_weights(extended.stages[1].model.net, first.stages[0].model.net)
+
+
+def test_extend_rejects_bad_targets(pendulum, base):
+    s = solver(system=pendulum)
+    with pytest.raises(ValueError, match="must exceed the current horizon"):
+        s.extend(base, to=0.5)
+    with pytest.raises(ValueError, match="must exceed the current horizon"):
+        s.extend(base, to=0.2)
+    with pytest.raises(ValueError, match="must exceed"):
+        s.extend(base, to=float("nan"))
+    with pytest.raises(ValueError, match="step must be positive"):
+        s.extend(base, to=1.0, step=0.0)
+    with pytest.raises(ValueError, match="step must be positive"):
+        s.extend(base, to=1.0, step=-0.5)
+    with pytest.raises(TypeError):
+        s.extend("not a solution", to=1.0)
+
+
+def test_extend_rejects_solution_of_another_system(base):
+    with pytest.raises(ValueError, match="system"):
+        solver(system=ph.systems.pendulum(R=2.0)).extend(base, to=1.0)
+
+
+@pytest.mark.parametrize("horizon", [0.0, -1.0, float("nan"), float("inf"), "1.0"])
+def test_solve_rejects_bad_horizon(pendulum, horizon):
+    with pytest.raises(ValueError, match="horizon must be a positive finite number"):
+        solver(system=pendulum).solve(horizon)
+
+
+def test_interrupted_extension_keeps_completed_stages(pendulum, base):
+    seen = []
+
+    def callback(sol):
+        seen.append(sol.horizon)
+        raise KeyboardInterrupt
+
+    with pytest.warns(UserWarning, match="interrupted"):
+        sol = solver(system=pendulum).extend(base, to=2.0, step=0.5, callback=callback)
+    assert seen == [1.0]
+    assert sol.interrupted is True
+    assert len(sol.stages) == 2 and sol.horizon == pytest.approx(1.0)
+    assert sol.stages[0] is base.stages[0]
+    assert "E" in sol.metrics  # the completed stage was evaluated before the interrupt
+
+
+# ------------------------------------------------------------------------------ solve_until
+def test_solve_until_stops_when_tolerance_is_met(pendulum):
+    sol = solver(system=pendulum).solve_until(tol=1e6, step=0.5, max_horizon=5.0)
+    assert len(sol.stages) == 1 and sol.horizon == pytest.approx(0.5)
+    assert sol.converged is True
+
+
+def test_solve_until_stops_at_max_horizon(pendulum):
+    horizons = []
+    sol = solver(system=pendulum).solve_until(tol=1e-30, step=0.5, max_horizon=1.2,
+                                              callback=lambda s: horizons.append(s.horizon))
+    assert sol.horizons == pytest.approx([0.5, 1.0, 1.2])
+    assert horizons == pytest.approx([0.5, 1.0, 1.2])
+    assert sol.converged is False
+    with pytest.raises(ValueError, match="tol must be positive"):
+        solver(system=pendulum).solve_until(tol=0.0, step=0.5)
+
+
+# ------------------------------------------------------------------------------ steady-state baseline
+def test_steady_state_solver(pendulum):
+    config = ph.TrainConfig.preset("quick", **FAST)
+    sol = ph.SteadyStateSolver(pendulum, config, seed=0, device="cpu", progress=False).solve()
+    assert sol.value(np.zeros((1, 2)))[0] == 0.0
+    assert sol.metrics["E_boundary"] == 0.0
+    assert sol.history.final_loss < sol.history.loss[0]
+    x = np.random.default_rng(0).uniform(-1, 1, (10, 2))
+    assert sol.policy(x).shape == (10, 1) and sol.gradient(x).shape == (10, 2)
+    assert np.abs(sol.value(x)).max() > 0
+
+
+# ------------------------------------------------------------------------------ TrainConfig
+@pytest.mark.parametrize("field, value", [
+    ("width", 0), ("depth", 0), ("batch_size", 0), ("pool_size", 0), ("adam_steps", -1), ("lbfgs_steps", -1),
+    ("lr", 0.0), ("lr", float("nan")), ("log_every", 0), ("dtype", "float16"), ("sampling", "random"),
+    ("schedule", "step"),
+])
+def test_train_config_rejects_bad_fields(field, value):
+    with pytest.raises(ValueError, match=field):
+        ph.TrainConfig(**{field: value})
+
+
+def test_train_config_fixed_data_needs_enough_flow_points():
+    with pytest.raises(ValueError, match="n_flow"):
+        ph.TrainConfig(sampling="fixed", n_flow=100, batch_size=500)
+
+
+def test_train_config_presets():
+    with pytest.raises(KeyError, match="unknown preset"):
+        ph.TrainConfig.preset("fastest")
+    with pytest.raises(KeyError, match="paper preset"):
+        ph.TrainConfig.preset("paper", system="lq")
+    paper = ph.TrainConfig.preset("paper", system="quartic")
+    assert (paper.width, paper.lr, paper.stop_loss, paper.ansatz, paper.sampling) == (250, 0.01, 1e-4, False, "fixed")
+    quick = ph.TrainConfig.preset("quick", adam_steps=7)
+    assert quick.adam_steps == 7 and quick.width == 32
+    assert ph.TrainConfig.from_dict(quick.to_dict()) == quick
+    assert quick.replace(width=8).width == 8
+    with pytest.raises(ValueError, match="unknown TrainConfig field"):
+        ph.TrainConfig.from_dict({**quick.to_dict(), "momentum": 0.9})
+    with pytest.raises(TypeError):
+        ph.TrainConfig.preset("quick", momentum=0.9)
+
+
+def test_solver_accepts_preset_name(pendulum):
+    assert ph.FiniteHorizonSolver(pendulum, "paper", progress=False, device="cpu").config.lr == 0.005
+    with pytest.raises(TypeError, match="config"):
+        ph.FiniteHorizonSolver(pendulum, 3, device="cpu")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+def test_cuda_request_without_cuda_raises(pendulum):
+    with pytest.raises(RuntimeError, match="CUDA is not available"):
+        ph.FiniteHorizonSolver(pendulum, "quick", device="cuda")
+    with pytest.raises(RuntimeError, match="CUDA is not available"):
+        ph.SteadyStateSolver(pendulum, "quick", device="cuda")
+
+
+# ------------------------------------------------------------------------------ regressions
+def test_final_loss_is_the_last_adam_loss_regardless_of_logging(pendulum):
+    every = solver(system=pendulum, log_every=1).solve(0.5).stages[0].history
+    sparse = solver(system=pendulum, log_every=25).solve(0.5).stages[0].history
+    logged = dict(zip(every.step, every.loss))
+    assert [logged[s] for s in sparse.step[:-1]] == sparse.loss[:-1]  # same run, only the logging differs
+    assert every.step[-2] == 30 and every.final_loss == every.loss[-2]
+    assert sparse.final_loss == every.final_loss
+
+
+def test_float64_warm_start_copies_previous_weights_exactly(pendulum):
+    first = solver(system=pendulum, adam_steps=3, dtype="float64").solve(0.5)
+    extended = solver(system=pendulum, adam_steps=0, dtype="float64").extend(first, to=1.0)
+    assert_same_weights(extended.stages[1].model.net, first.stages[0].model.net)
+
+
+def test_solution_closed_loop_runs_its_policy(chain):
+    result = chain.closed_loop(np.array([[0.5, 0.0], [-0.5, 0.2]]), t_final=1.0, dt=0.05)
+    assert result.x.shape == (21, 2, 2) and result.u.shape == (21, 2, 1)
+    x0 = torch.tensor([[0.5, 0.0], [-0.5, 0.2]], dtype=torch.float64)
+    np.testing.assert_allclose(result.u[0], chain.policy(x0).numpy(), rtol=1e-6)
+    assert np.all(np.isfinite(result.cost)) and np.all(result.cost > 0)
