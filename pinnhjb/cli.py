@@ -1,8 +1,9 @@
-"""Command line: ``python -m pinnhjb train|evaluate``.
+"""Command line: ``python -m pinnhjb train|evaluate|reproduce``.
 
     python -m pinnhjb train pendulum --horizon 1 --extend-to 4 --step 1 --seed 0 --out artifacts/pendulum.pt
     python -m pinnhjb train third_order --param R=0.1 --horizon 0.5 --out r01.pt
     python -m pinnhjb evaluate artifacts/pendulum.pt
+    python -m pinnhjb reproduce --seeds 3          # every simulation of the paper -> artifacts/
 
 ``train`` saves a checkpoint after every stage (atomic), so an interrupted run keeps its finished stages.
 """
@@ -78,6 +79,15 @@ def _evaluate(args) -> int:
     return 0
 
 
+def _reproduce(args) -> int:
+    from .reproduce import run
+
+    only = args.cases.split(",") if args.cases else None
+    result = run(out=args.out, seeds=args.seeds, quick=args.quick, only=only, progress=not args.no_progress)
+    print(f"results: {args.out}/results/reproduce.md ({result['meta']['wall_time']:.0f} s)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m pinnhjb", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -101,6 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--device", default=None)
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=_evaluate)
+    r = sub.add_parser("reproduce", help="train and evaluate every simulation of the paper; write artifacts")
+    r.add_argument("--quick", action="store_true", help="tiny networks and short chains (a few minutes, for CI)")
+    r.add_argument("--seeds", type=int, default=3)
+    r.add_argument("--out", default="artifacts", help="folder for checkpoints, reference grids and results")
+    r.add_argument("--cases", default=None, help="comma-separated subset of case names")
+    r.add_argument("--no-progress", action="store_true")
+    r.set_defaults(func=_reproduce)
     return p
 
 

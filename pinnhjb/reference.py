@@ -1,0 +1,465 @@
+"""Independent reference values by open-loop optimal control (Pontryagin two-point BVPs).
+
+For one initial state ``x0`` the optimal value of the finite-horizon cost (eq:costT)
+
+    J_T(u; x0) = int_0^T ( Q(x) + u'Ru ) dt + phi(x(T)),   xdot = f(x) + g(x) u   (eq. (1))
+
+is found from the minimum principle. With the Hamiltonian ``H = lam'(f + g u) + Q + u'Ru`` the
+minimizing control is ``u = -1/2 R^{-1} g(x)' lam`` (the open-loop form of eq. (3), eq:mustar, and of
+eq:muTstar), and the extremal solves
+
+    xdot = f + g u,   lamdot = -dH/dx (u held at its minimizer),   x(0) = x0,  lam(T) = grad phi(x(T)).
+
+Writing ``Hmin(x, lam) = lam'f + Q - 1/4 lam' g R^{-1} g' lam`` this is the Hamiltonian system
+``xdot = dHmin/dlam``, ``lamdot = -dHmin/dx``; the running cost is carried as an extra state ``c``
+(``cdot = Q + u'Ru``, ``c(0) = 0``), so ``V_T(x0, 0) = c(T) + phi(x(T))``, ``grad_x V_T(x0, 0) =
+lam(0)`` and ``mu_T(x0, 0) = -1/2 R^{-1} g(x0)' lam(0)``. The BVP is solved by
+``scipy.integrate.solve_bvp`` (4th-order collocation) with exact Jacobians: derivatives of ``f``,
+``g``, ``Q`` (and ``phi``) come from torch autograd on the system's own batched callables, never from
+finite differences.
+
+Infinite horizon (eq. (2), eq:cost): the problem is truncated at ``t_inf`` with the terminal cost
+``phi(x) = x'P x`` where P is the CARE solution of the linearization at the origin (``A = df/dx(0)``,
+``B = g(0)``, ``Q_lin = Hessian(Q)(0)/2``, R). Near the origin this *is* the optimal cost-to-go up to
+O(|x|^3), so the truncation error is O(|x(t_inf)|^3); ``|x(t_inf)|`` is checked (``tail_tol``).
+
+Nothing here depends on the PINN code (:mod:`pinnhjb.pinn`, ``training``, ``solver``, ``metrics``):
+only numpy/scipy and the system's callables ``f, g, Q, R``.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import scipy
+import scipy.linalg as sla
+import torch
+from scipy.integrate import solve_bvp
+
+__all__ = ["ReferenceGrid", "solve_point", "reference_grid"]
+
+_DT = torch.float64
+
+
+# ============================================================================ autograd helpers
+def _grad(out: torch.Tensor, inp: torch.Tensor, create_graph: bool = False) -> torch.Tensor:
+    """d(out.sum())/d inp, zeros where ``out`` does not depend on ``inp``."""
+    if not out.requires_grad:
+        return torch.zeros_like(inp)
+    (gr,) = torch.autograd.grad(out.sum(), inp, create_graph=create_graph, retain_graph=True, allow_unused=True)
+    return torch.zeros_like(inp) if gr is None else gr
+
+
+class _Problem:
+    """The Hamiltonian system of one system / horizon / terminal cost, evaluated with autograd.
+
+    All system callables are batched row-wise (row k of the output depends on row k of the input
+    only), so the gradient of a sum over the batch is the batch of per-point gradients.
+    """
+
+    def __init__(self, system, horizon: float, terminal_cost, t_inf: float):
+        self.system = system
+        self.n, self.m = system.n, system.m
+        self.R = np.asarray(system.R, dtype=float)
+        self.Rinv = np.linalg.inv(self.R)
+        self.Rinv_t = torch.as_tensor(self.Rinv, dtype=_DT)
+        self._linearize()
+        if math.isinf(horizon):
+            if not (np.isfinite(t_inf) and t_inf > 0):
+                raise ValueError(f"t_inf must be a finite positive number; got {t_inf}")
+            if terminal_cost is not None:
+                raise ValueError("terminal_cost is only used with a finite horizon")
+            self.T = float(t_inf)
+            self.P_T = self.P_lqr.copy()  # phi(x) = x'P_lqr x: the linearization's cost-to-go
+            self.phi = None
+        else:
+            if not (np.isfinite(horizon) and horizon > 0):
+                raise ValueError(f"horizon must be positive (finite or math.inf); got {horizon}")
+            self.T = float(horizon)
+            self.P_T, self.phi = None, None
+            if terminal_cost is None:
+                self.P_T = np.zeros((self.n, self.n))
+            elif callable(terminal_cost):
+                self.phi = terminal_cost
+                out = terminal_cost(torch.zeros(2, self.n, dtype=_DT))
+                if not isinstance(out, torch.Tensor) or tuple(out.shape) != (2,):
+                    raise ValueError("terminal_cost must be a batched torch callable (N, n) -> (N,)")
+            else:
+                P = np.asarray(terminal_cost, dtype=float)
+                if P.shape != (self.n, self.n) or not np.all(np.isfinite(P)):
+                    raise ValueError(f"terminal_cost as a matrix must be a finite ({self.n}, {self.n}) array; "
+                                     f"got shape {P.shape}")
+                self.P_T = (P + P.T) / 2  # phi(x) = x'P_T x
+
+    # ------------------------------------------------------------------ linearization / LQR guess
+    def _linearize(self):
+        n, s = self.n, self.system
+        z = torch.zeros(n, dtype=_DT)
+        A = torch.autograd.functional.jacobian(lambda v: s.f(v[None])[0], z).numpy()
+        B = s.g(z[None])[0].detach().numpy()
+        Ql = 0.5 * torch.autograd.functional.hessian(lambda v: s.Q(v[None])[0], z).numpy()
+        Ql = (Ql + Ql.T) / 2
+        P = None
+        try:
+            P = sla.solve_continuous_are(A, B, Ql, self.R)
+        except (np.linalg.LinAlgError, ValueError):
+            if np.all(np.linalg.eigvals(A).real < 0):  # B may be uncontrollable but A stable
+                P = sla.solve_continuous_lyapunov(A.T, -Ql)
+        if P is None or not np.all(np.isfinite(P)):
+            warnings.warn(f"system '{s.name}': no stabilizing Riccati solution for the linearization at 0; "
+                          "the infinite-horizon tail uses phi = 0 and the LQR initial guess is the open loop",
+                          RuntimeWarning, stacklevel=3)
+            P = np.zeros((n, n))
+        self.A, self.B, self.Q_lin = A, B, Ql
+        self.P_lqr = (P + P.T) / 2
+        self.K = self.Rinv @ B.T @ self.P_lqr
+        self.A_cl = A - B @ self.K
+
+    def _lin_flow(self, t: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """expm(A_cl t) dx for every t: (n, len(t)) (eigendecomposition; expm per node if defective)."""
+        w, V = self._eig
+        if V is not None:
+            return (V @ (np.exp(np.outer(w, t)) * np.linalg.solve(V, dx)[:, None])).real
+        return np.stack([sla.expm(tk * self.A_cl) @ dx for tk in t], axis=1)
+
+    @property
+    def _eig(self):
+        if not hasattr(self, "_eig_cache"):
+            w, V = np.linalg.eig(self.A_cl)
+            self._eig_cache = (w, V if np.linalg.cond(V) < 1e8 else None)
+        return self._eig_cache
+
+    def lqr_guess(self, x0: np.ndarray, nodes: int = 60):
+        t = self.T * np.linspace(0.0, 1.0, nodes) ** 2
+        x = self._lin_flow(t, x0)
+        lam = 2 * self.P_lqr @ x
+        u = -self.K @ x
+        rate = np.einsum("ik,ij,jk->k", x, self.Q_lin, x) + np.einsum("ik,ij,jk->k", u, self.R, u)
+        c = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(t))])
+        return t, np.vstack([x, lam, c])
+
+    def shifted_guess(self, prev: dict, x0: np.ndarray):
+        """A neighbour's solution moved to ``x0`` by the linear closed-loop sensitivity (cut, or
+        continued by the LQR closed loop, when its horizon differs from this one)."""
+        sol, n = prev["solution"], self.n
+        t = sol.x
+        if t[-1] >= self.T * (1 - 1e-12):
+            t = np.append(t[t < self.T * (1 - 1e-9)], self.T)
+            y = sol.sol(t).copy()
+        else:
+            y_end = sol.y[:, -1]
+            t_extra = t[-1] + (self.T - t[-1]) * np.linspace(0.0, 1.0, 30)[1:] ** 2
+            x_extra = self._lin_flow(t_extra - t[-1], y_end[:n])
+            togo = lambda x: np.einsum("ik,ij,jk->k", x, self.P_lqr, x)  # noqa: E731
+            c_extra = y_end[2 * n] + togo(y_end[:n, None]) - togo(x_extra)
+            t = np.concatenate([t, t_extra])
+            y = np.hstack([sol.y, np.vstack([x_extra, 2 * self.P_lqr @ x_extra, c_extra])])
+        dx = self._lin_flow(t, x0 - np.asarray(prev["x0"], dtype=float))
+        y[:n] += dx
+        y[n: 2 * n] += 2 * self.P_lqr @ dx
+        return t, y
+
+    def extended(self, T: float) -> "_Problem":
+        """The same infinite-horizon truncation with a longer ``t_inf``."""
+        other = copy.copy(self)
+        other.T = float(T)
+        return other
+
+    # ------------------------------------------------------------------ the Hamiltonian system
+    def _parts(self, x: torch.Tensor, lam: torch.Tensor):
+        s = self.system
+        fx, gx, qx = s.f(x), s.g(x), s.Q(x)
+        gTl = torch.einsum("knm,kn->km", gx, lam)
+        quad = torch.einsum("ki,ij,kj->k", gTl, self.Rinv_t, gTl)  # lam' g R^-1 g' lam
+        hmin = (lam * fx).sum(-1) + qx - 0.25 * quad
+        rate = qx + 0.25 * quad  # Q + u'Ru at u = -1/2 R^-1 g' lam
+        return hmin, rate
+
+    def _leaves(self, y: np.ndarray):
+        n = self.n
+        yt = torch.as_tensor(np.ascontiguousarray(y[: 2 * n].T), dtype=_DT)
+        x = yt[:, :n].clone().requires_grad_(True)
+        lam = yt[:, n:].clone().requires_grad_(True)
+        return x, lam
+
+    def rhs(self, t, y):
+        x, lam = self._leaves(y)
+        hmin, rate = self._parts(x, lam)
+        dx, dl = _grad(hmin, x), _grad(hmin, lam)
+        return np.vstack([dl.detach().numpy().T, -dx.detach().numpy().T, rate.detach().numpy()[None]])
+
+    def rhs_jac(self, t, y):
+        n, k = self.n, y.shape[1]
+        x, lam = self._leaves(y)
+        hmin, rate = self._parts(x, lam)
+        gx, gl = _grad(hmin, x, True), _grad(hmin, lam, True)
+        jac = np.zeros((2 * n + 1, 2 * n + 1, k))
+        for i in range(n):  # rows of xdot = dHmin/dlam and lamdot = -dHmin/dx
+            jac[i, :n] = _grad(gl[:, i], x).detach().numpy().T
+            jac[i, n: 2 * n] = _grad(gl[:, i], lam).detach().numpy().T
+            jac[n + i, :n] = -_grad(gx[:, i], x).detach().numpy().T
+            jac[n + i, n: 2 * n] = -_grad(gx[:, i], lam).detach().numpy().T
+        jac[2 * n, :n] = _grad(rate, x).detach().numpy().T
+        jac[2 * n, n: 2 * n] = _grad(rate, lam).detach().numpy().T
+        return jac
+
+    # ------------------------------------------------------------------ terminal cost
+    def phi_value(self, xT: np.ndarray) -> float:
+        if self.phi is None:
+            return float(xT @ self.P_T @ xT)
+        return float(self.phi(torch.as_tensor(xT, dtype=_DT)[None])[0])
+
+    def phi_grad(self, xT: np.ndarray) -> np.ndarray:
+        if self.phi is None:
+            return 2 * self.P_T @ xT
+        v = torch.as_tensor(xT, dtype=_DT)[None].clone().requires_grad_(True)
+        return _grad(self.phi(v), v)[0].detach().numpy()
+
+    def phi_hess(self, xT: np.ndarray) -> np.ndarray:
+        if self.phi is None:
+            return 2 * self.P_T
+        return torch.autograd.functional.hessian(lambda v: self.phi(v[None])[0],
+                                                 torch.as_tensor(xT, dtype=_DT)).numpy()
+
+    def bc(self, x0):
+        n = self.n
+
+        def bc(ya, yb):
+            return np.concatenate([ya[:n] - x0, yb[n: 2 * n] - self.phi_grad(yb[:n]), ya[2 * n: 2 * n + 1]])
+
+        def bc_jac(ya, yb):
+            d = 2 * n + 1
+            Ja, Jb = np.zeros((d, d)), np.zeros((d, d))
+            Ja[:n, :n] = np.eye(n)
+            Ja[2 * n, 2 * n] = 1.0
+            Jb[n: 2 * n, n: 2 * n] = np.eye(n)
+            Jb[n: 2 * n, :n] = -self.phi_hess(yb[:n])
+            return Ja, Jb
+
+        return bc, bc_jac
+
+    # ------------------------------------------------------------------ one BVP solve
+    def solve(self, x0: np.ndarray, t: np.ndarray, y: np.ndarray, tol: float, max_nodes: int):
+        bc, bc_jac = self.bc(x0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # overflow in a diverging Newton step
+            sol = solve_bvp(self.rhs, bc, t, y, fun_jac=self.rhs_jac, bc_jac=bc_jac, tol=tol,
+                            bc_tol=tol, max_nodes=max_nodes)
+        return sol
+
+
+# ============================================================================ one initial state
+def _check_x0(system, x0) -> np.ndarray:
+    if isinstance(x0, torch.Tensor):
+        x0 = x0.detach().cpu().numpy()
+    x = np.asarray(x0, dtype=float)
+    if x.shape != (system.n,):
+        raise ValueError(f"x0 must have shape ({system.n},) for system '{system.name}'; got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("x0 contains NaN or infinite entries")
+    return x
+
+
+def _result(prob: _Problem, x0: np.ndarray, sol, tol: float, tail_tol: float, infinite: bool) -> dict:
+    n = prob.n
+    y0, yT = sol.y[:, 0], sol.y[:, -1]
+    xT = yT[:n]
+    value = float(yT[2 * n]) + prob.phi_value(xT)
+    lam0 = y0[n: 2 * n].copy()
+    g0 = prob.system.g(torch.as_tensor(x0, dtype=_DT)[None])[0].detach().numpy()
+    policy = -0.5 * prob.Rinv @ g0.T @ lam0
+    residual = float(np.max(sol.rms_residuals)) if sol.rms_residuals is not None and sol.rms_residuals.size else np.inf
+    bc_res = float(np.max(np.abs(prob.bc(x0)[0](y0, yT))))
+    tail = float(np.linalg.norm(xT)) if infinite else float("nan")
+    # Hmin is constant along an extremal; for the infinite-horizon problem it is ~0 (the HJB (4)).
+    hmin = float(prob._parts(*(torch.as_tensor(v, dtype=_DT)[None] for v in (x0, lam0)))[0][0])
+    finite = np.all(np.isfinite([value, *lam0, *policy]))
+    converged = bool(sol.status == 0 and finite and residual <= tol * (1 + 1e-9) and bc_res <= 10 * tol
+                     and (not infinite or tail <= tail_tol))
+    return {"x0": x0, "value": value, "gradient": lam0, "policy": policy, "converged": converged,
+            "status": int(sol.status), "message": sol.message, "residual": residual, "bc_residual": bc_res,
+            "tail_norm": tail, "hamiltonian": hmin, "nodes": int(sol.x.size), "solution": sol}
+
+
+def _solve(prob: _Problem, x0, guess, tol, max_nodes, tail_tol, infinite) -> dict:
+    """Try the given warm start, then the LQR guess, then continuation along the ray s*x0."""
+    attempts = []
+    if guess is not None:
+        attempts.append(("warm", prob.shifted_guess(guess, x0)))
+    attempts.append(("lqr", prob.lqr_guess(x0)))
+    best = None
+    for _, (t, y) in attempts:
+        res = _result(prob, x0, prob.solve(x0, t, y, tol, max_nodes), tol, tail_tol, infinite)
+        if res["converged"]:
+            return res
+        best = best or res
+    # continuation from a small multiple of x0 (where the LQR guess is accurate) out to x0
+    prev = None
+    for s in (0.25, 0.5, 0.75, 1.0):
+        xs = s * x0
+        t, y = prob.shifted_guess(prev, xs) if prev is not None else prob.lqr_guess(xs)
+        res = _result(prob, xs, prob.solve(xs, t, y, tol, max_nodes), tol, tail_tol, infinite)
+        if not res["converged"]:
+            return best
+        prev = res
+    return prev
+
+
+def solve_point(system, x0, horizon: float = math.inf, terminal_cost=None, t_inf: float = 25.0,
+                tol: float = 1e-8, guess: Optional[dict] = None, max_nodes: int = 100_000,
+                tail_tol: float = 1e-3, max_extensions: int = 3, _problem: Optional[_Problem] = None) -> dict:
+    """Optimal value, gradient and policy at one initial state by the minimum principle.
+
+    Parameters
+    ----------
+    system : a :class:`~pinnhjb.systems.ControlAffineSystem` (only ``f, g, Q, R, n, m`` are used).
+    x0 : initial state, shape (n,).
+    horizon : ``math.inf`` for V*(x0) of the infinite-horizon cost eq. (2) (eq:cost), or T > 0 for
+        V_T(x0, 0) of the finite-horizon cost eq:costT.
+    terminal_cost : phi for a finite horizon: ``None`` (phi = 0), a batched torch callable
+        (N, n) -> (N,), or an (n, n) matrix P_T meaning ``phi(x) = x'P_T x``.
+    t_inf : truncation time of the infinite horizon (terminal cost x'P_lqr x, see the module doc).
+    tol : ``solve_bvp`` tolerance on the collocation and boundary residuals.
+    guess : a previous result of this function (warm start, shifted to ``x0``); on failure the LQR
+        guess and then continuation along the ray ``s x0``, s = 1/4 .. 1, are tried.
+    tail_tol : infinite horizon only: the solve is flagged unless ``|x(t_inf)| <= tail_tol``.
+    max_extensions : infinite horizon only: while the tail check fails, ``t_inf`` is doubled up to
+        this many times (slow systems, e.g. :func:`~pinnhjb.systems.third_order`, need t_inf ~ 100).
+
+    Returns a dict: ``value`` (V), ``gradient`` (lam(0) = grad_x V), ``policy`` (eq. (3)
+    eq:mustar / eq:muTstar at t = 0: ``-1/2 R^{-1} g(x0)' lam(0)``), ``converged`` (bool: BVP
+    status 0, residuals within tol, tail small), ``status``, ``message``, ``residual`` (max
+    collocation rms residual), ``bc_residual``, ``tail_norm``, ``hamiltonian`` (Hmin at t = 0; ~0
+    for the infinite horizon), ``nodes``, ``x0``, ``t_inf`` (the truncation used; None for a finite
+    horizon) and ``solution`` (the ``solve_bvp`` result, rows x, lam, accumulated cost). A
+    non-converged result is returned, flagged, with a RuntimeWarning.
+    """
+    x0 = _check_x0(system, x0)
+    prob = _problem if _problem is not None else _Problem(system, horizon, terminal_cost, t_inf)
+    infinite = math.isinf(horizon)
+    res = _solve(prob, x0, guess, tol, max_nodes, tail_tol, infinite)
+    for _ in range(max_extensions if infinite else 0):
+        if res["converged"] or res["status"] != 0 or not res["tail_norm"] > tail_tol:
+            break
+        prob = prob.extended(2 * prob.T)  # the state has not reached the origin yet: lengthen t_inf
+        res = _solve(prob, x0, res if np.allclose(res["x0"], x0) else guess, tol, max_nodes, tail_tol, infinite)
+    res["t_inf"] = prob.T if infinite else None
+    res["_problem"] = prob
+    if not res["converged"]:
+        warnings.warn(f"reference BVP did not converge at x0={x0.tolist()}: status {res['status']} "
+                      f"({res['message']}), residual {res['residual']:.2e}, tail {res['tail_norm']:.2e}",
+                      RuntimeWarning, stacklevel=2)
+    return res
+
+
+# ============================================================================ grids
+@dataclass(eq=False)
+class ReferenceGrid:
+    """Reference values on a grid: V (eq. (2) eq:cost, or V_T(., 0) of eq:costT), grad V, and the
+    policy of eq. (3) (eq:mustar / eq:muTstar at t = 0). Points that did not converge hold NaN and
+    ``converged = False``; ``status`` is the ``solve_bvp`` status (0 = success)."""
+
+    points: np.ndarray
+    value: np.ndarray
+    gradient: np.ndarray
+    policy: np.ndarray
+    horizon: float
+    converged: np.ndarray
+    max_bvp_residual: np.ndarray
+    wall_time: float
+    system: dict
+    status: Optional[np.ndarray] = None
+    info: dict = field(default_factory=dict)
+
+    _ARRAYS = ("points", "value", "gradient", "policy", "converged", "max_bvp_residual", "status")
+
+    def save(self, path) -> None:
+        """Write a .npz with every array and a JSON ``metadata`` string (system spec, horizon,
+        tolerances, library versions, wall time, creation time)."""
+        meta = {"system": self.system, "horizon": "inf" if math.isinf(self.horizon) else float(self.horizon),
+                "wall_time": float(self.wall_time), "info": self.info,
+                "versions": {"numpy": np.__version__, "scipy": scipy.__version__, "torch": torch.__version__},
+                "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        arrays = {k: np.asarray(getattr(self, k)) for k in self._ARRAYS if getattr(self, k) is not None}
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as fh:  # atomic: write aside, then rename
+            np.savez(fh, metadata=np.array(json.dumps(meta)), **arrays)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path) -> "ReferenceGrid":
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data["metadata"]))
+            arrays = {k: data[k] for k in cls._ARRAYS if k in data.files}
+        horizon = math.inf if meta["horizon"] == "inf" else float(meta["horizon"])
+        info = dict(meta.get("info", {}), versions=meta.get("versions"), created=meta.get("created"))
+        return cls(horizon=horizon, wall_time=float(meta["wall_time"]), system=meta["system"], info=info, **arrays)
+
+
+def reference_grid(system, points_per_dim: int = 41, horizon: float = math.inf, terminal_cost=None, box=None,
+                   progress: bool = True, strict: bool = False, **kw) -> ReferenceGrid:
+    """:func:`solve_point` on the tensor-product grid ``system.grid(points_per_dim, box=box)`` of Omega.
+
+    Points are swept by distance from the origin; each is warm-started from its nearest solved
+    grid neighbour (see :func:`solve_point` for the fallbacks). Keyword arguments (``t_inf``,
+    ``tol``, ``max_nodes``, ``tail_tol``) go to :func:`solve_point`. Failed points are NaN with
+    ``converged = False`` and a RuntimeWarning, or a RuntimeError when ``strict``.
+    """
+    from tqdm.auto import tqdm
+
+    if box is not None:
+        box = np.asarray(box, dtype=float)
+    pts = system.grid(points_per_dim, box=box).detach().cpu().numpy().astype(float)
+    N, n = pts.shape
+    start = time.perf_counter()
+    prob = _Problem(system, horizon, terminal_cost, kw.get("t_inf", 25.0))
+    box_ = system.domain if box is None else box
+    scale = np.maximum(np.abs(box_).max(axis=1), 1e-12)
+    order = np.argsort(np.linalg.norm(pts / scale, axis=1), kind="stable")
+    shape = (points_per_dim,) * n
+    strides = np.array([int(np.prod(shape[i + 1:])) for i in range(n)])
+    value, status = np.full(N, np.nan), np.full(N, -1, dtype=int)
+    grad, pol = np.full((N, n), np.nan), np.full((N, system.m), np.nan)
+    conv, resid = np.zeros(N, dtype=bool), np.full(N, np.nan)
+    solved: dict[int, dict] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for k in tqdm(order, desc=f"reference {system.name}", disable=not progress, leave=False):
+            idx = np.array(np.unravel_index(k, shape))
+            nbrs = [int(k + s * strides[d]) for d in range(n) for s in (-1, 1)
+                    if 0 <= idx[d] + s < points_per_dim and int(k + s * strides[d]) in solved]
+            guess = solved[min(nbrs, key=lambda j: np.linalg.norm(pts[j] - pts[k]))] if nbrs else None
+            res = solve_point(system, pts[k], horizon=horizon, guess=guess, _problem=prob, **kw)
+            status[k], resid[k] = res["status"], res["residual"]
+            if res["_problem"].T > prob.T:  # t_inf had to grow: farther points start from the longer one
+                prob = res["_problem"]
+            if res["converged"]:
+                conv[k] = True
+                value[k], grad[k], pol[k] = res["value"], res["gradient"], res["policy"]
+                solved[k] = res
+    wall = time.perf_counter() - start
+    if not conv.all():
+        msg = f"reference grid: {int((~conv).sum())} of {N} points did not converge (set to NaN)"
+        if strict:
+            raise RuntimeError(msg)
+        warnings.warn(msg, RuntimeWarning, stacklevel=2)
+    info = {"points_per_dim": points_per_dim, "box": np.asarray(box_).tolist(),
+            "tol": kw.get("tol", 1e-8), "t_inf": prob.T if math.isinf(horizon) else None,
+            "tail_tol": kw.get("tail_tol", 1e-3), "max_nodes": kw.get("max_nodes", 100_000),
+            "terminal_cost": None if terminal_cost is None else ("callable" if callable(terminal_cost)
+                                                                  else np.asarray(terminal_cost).tolist()),
+            "method": "Pontryagin BVP, scipy.integrate.solve_bvp, autograd Jacobians"}
+    return ReferenceGrid(points=pts, value=value, gradient=grad, policy=pol, horizon=float(horizon),
+                         converged=conv, max_bvp_residual=resid, wall_time=wall, system=system.spec(),
+                         status=status, info=info)
