@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -25,7 +26,7 @@ from .storage import load, provenance, save
 from .systems import get_system
 
 __all__ = ["Case", "CASES", "cases", "run", "checkpoint_path", "reference_path", "load_case", "load_reference",
-           "DEFAULT_OUT"]
+           "load_results", "artifacts_dir", "DEFAULT_OUT"]
 
 DEFAULT_OUT = Path("artifacts")
 INF = math.inf
@@ -65,8 +66,10 @@ THIRD_ORDER_PAPER = {0.01: 0.0008, 0.1: 0.1152, 1.0: 0.0430, 10.0: 0.0031, 100.0
 CASES: list[Case] = [
     Case("pendulum_extension", "pendulum", first=1.0, to=4.0, step=1.0,
          paper={1.0: 0.0453, 2.0: 0.0041, 3.0: 0.0026, 4.0: 0.0022}),
+    Case("pendulum_one_stage", "pendulum", first=4.0),  # T = 4 in one stage: what extension saves
     Case("pendulum_steady", "pendulum", kind="steady", paper={INF: 0.0122}),
     Case("quartic_extension", "quartic", first=0.5, to=4.0, step=0.5, paper={0.5: 0.7705, 4.0: 1.536e-4}),
+    Case("quartic_one_stage", "quartic", first=4.0),
     Case("quartic_steady", "quartic", kind="steady"),
 ] + [
     # Table 2 is T = 0.5; the large-R cases are extended to test the paper's explanation of the R trend.
@@ -107,16 +110,33 @@ def reference_path(out: Path, case: Case, horizon: float) -> Path:
     return Path(out) / "reference" / f"{_system_key(case)}_{tag}.npz"
 
 
-def load_case(case: str, seed: int = 0, out: Path = DEFAULT_OUT, device=None):
+def artifacts_dir() -> Path:
+    """Where the committed artifacts are: ``$PINNHJB_ARTIFACTS``, else the nearest ``artifacts/`` folder
+    with checkpoints in the working directory or above it (notebooks run from ``notebooks/``)."""
+    env = os.environ.get("PINNHJB_ARTIFACTS")
+    if env:
+        return Path(env)
+    for base in [Path.cwd(), *Path.cwd().parents]:
+        if (base / DEFAULT_OUT / "checkpoints").is_dir():
+            return base / DEFAULT_OUT
+    return DEFAULT_OUT
+
+
+def load_case(case: str, seed: int = 0, out: Path | None = None, device=None):
     """The stored solution of a case (as the notebooks load it)."""
-    return load(checkpoint_path(out, case, seed), device=device)
+    return load(checkpoint_path(out or artifacts_dir(), case, seed), device=device)
 
 
-def load_reference(case: str | Case, horizon: float = INF, out: Path = DEFAULT_OUT):
+def load_reference(case: str | Case, horizon: float = INF, out: Path | None = None):
     from .reference import ReferenceGrid
 
     case = case if isinstance(case, Case) else next(c for c in CASES if c.name == case)
-    return ReferenceGrid.load(reference_path(out, case, horizon))
+    return ReferenceGrid.load(reference_path(out or artifacts_dir(), case, horizon))
+
+
+def load_results(out: Path | None = None) -> dict:
+    """The results table written by :func:`run` (``summary`` rows, ``records`` per seed, ``meta``)."""
+    return json.loads((Path(out or artifacts_dir()) / "results" / "reproduce.json").read_text())
 
 
 # ---------------------------------------------------------------------- references
@@ -243,6 +263,7 @@ def run(out: Path = DEFAULT_OUT, seeds: int = 3, quick: bool = False, only: list
             records.append({"case": case.name, "system": case.system, "params": case.params, "seed": seed,
                             "wall_time": wall, "train_time": sol.wall_time, "rows": rows,
                             "paper": {str(k): v for k, v in case.paper.items()}})
+    records = _merge(out, records)
     summary = _aggregate(records)
     meta = provenance(mode=mode, seeds=seeds, config=TrainConfig.preset("quick" if quick else "default").to_dict(),
                       closed_loop={"default": CLOSED_LOOP[mode], **({} if quick else CLOSED_LOOP_SYSTEM)},
@@ -250,6 +271,17 @@ def run(out: Path = DEFAULT_OUT, seeds: int = 3, quick: bool = False, only: list
                       wall_time=time.perf_counter() - start)
     _write(out, records, summary, meta)
     return {"records": records, "summary": summary, "meta": meta}
+
+
+def _merge(out: Path, records: list[dict]) -> list[dict]:
+    """Keep earlier results of cases not rerun now (a partial rerun with ``--cases`` updates its rows only)."""
+    path = Path(out) / "results" / "reproduce.json"
+    if not path.exists():
+        return records
+    done = {r["case"] for r in records}
+    earlier = [r for r in json.loads(path.read_text()).get("records", []) if r["case"] not in done]
+    order = {c.name: i for i, c in enumerate(CASES)}
+    return sorted(earlier + records, key=lambda r: (order.get(r["case"], len(order)), r["seed"]))
 
 
 METRICS = ["E", "E_reference_VT", "value_max_error", "value_rmse", "policy_max_error", "policy_rmse",

@@ -1,0 +1,137 @@
+"""Figures, one style for every chapter: the paper's surfaces (Figures 1-7) and the book's own plots.
+
+Every function takes plain data or a solution object and returns a matplotlib ``Figure``; nothing is shown
+or saved here.
+"""
+from __future__ import annotations
+
+import math
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+__all__ = ["grid_2d", "surfaces", "value_policy_residual", "value_and_error", "policy_and_error",
+           "residual_by_horizon", "loss_curve"]
+
+CMAP = "viridis"
+DIVERGING = "RdBu_r"
+
+
+def grid_2d(system, points_per_dim: int = 41):
+    """Mesh over Omega of a 2-D system: (X1, X2, points (N, 2))."""
+    if system.n != 2:
+        raise ValueError(f"surface plots need a 2-D state; system '{system.name}' has n={system.n}")
+    (a, b), (c, d) = system.domain
+    x1, x2 = np.meshgrid(np.linspace(a, b, points_per_dim), np.linspace(c, d, points_per_dim), indexing="ij")
+    return x1, x2, np.stack([x1.ravel(), x2.ravel()], -1)
+
+
+def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str = "", zlabels=None,
+             diverging: list[bool] | None = None):
+    """Side-by-side 3-D surfaces of fields on the mesh (x1, x2), as in the paper's figures."""
+    k = len(fields)
+    fig = plt.figure(figsize=(4.6 * k, 4.0))
+    for i, (z, title) in enumerate(zip(fields, titles)):
+        ax = fig.add_subplot(1, k, i + 1, projection="3d")
+        cmap = DIVERGING if diverging and diverging[i] else CMAP
+        ax.plot_surface(x1, x2, z.reshape(x1.shape), cmap=cmap, linewidth=0, antialiased=True)
+        ax.set_xlabel("$x_1$")
+        ax.set_ylabel("$x_2$")
+        if zlabels:
+            ax.set_zlabel(zlabels[i])
+        ax.set_title(title, fontsize=10)
+        ax.view_init(elev=28, azim=-130)
+    if suptitle:
+        fig.suptitle(suptitle)
+    fig.tight_layout()
+    return fig
+
+
+def _t_label(sol) -> str:
+    T = getattr(sol, "horizon", math.inf)
+    return r"\infty" if T == math.inf else f"{T:g}"
+
+
+def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = ""):
+    """V(., 0), mu(., 0) and the squared flow residual E_e^2 (eq. (flow_res)): the paper's Figures 1-3."""
+    x1, x2, pts = grid_2d(sol.system, points_per_dim)
+    T = _t_label(sol)
+    v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2
+    return surfaces(x1, x2, [v, u, e], [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0)$",
+                                       rf"$E_e(x;\hat V_{{{T}}})^2$"], suptitle)
+
+
+def _reference_on(sol, pts, reference, which: str):
+    system = sol.system
+    if reference is None:
+        import torch
+
+        fn = system.value_star if which == "value" else system.policy_star
+        if fn is None:
+            raise ValueError(f"system '{system.name}' has no known V*; pass a reference grid")
+        out = fn(torch.as_tensor(pts)).numpy()
+        return out if which == "value" else out[:, 0]
+    return reference.value if which == "value" else reference.policy[:, 0]
+
+
+def _mesh(sol, reference, points_per_dim):
+    """The plotting mesh: a grid over Omega, or the reference grid's own points when one is given."""
+    if reference is None:
+        return grid_2d(sol.system, points_per_dim)
+    pts = reference.points
+    side = round(math.sqrt(pts.shape[0]))
+    return pts[:, 0].reshape(side, side), pts[:, 1].reshape(side, side), pts
+
+
+def value_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: str = ""):
+    """The learned V(., 0) and its error from optimality V - V* (the paper's Figures 4 and 6)."""
+    x1, x2, pts = _mesh(sol, reference, points_per_dim)
+    T = _t_label(sol)
+    v = sol.value(pts)
+    return surfaces(x1, x2, [v, v - _reference_on(sol, pts, reference, "value")],
+                    [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat V_{{{T}}}(x,0) - V^\star(x)$"], suptitle,
+                    diverging=[False, True])
+
+
+def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: str = ""):
+    """The learned mu(., 0) and its error from optimality mu - mu* (the paper's Figures 5 and 7)."""
+    x1, x2, pts = _mesh(sol, reference, points_per_dim)
+    T = _t_label(sol)
+    u = sol.policy(pts)[:, 0]
+    return surfaces(x1, x2, [u, u - _reference_on(sol, pts, reference, "policy")],
+                    [rf"$\hat\mu_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0) - \mu^\star(x)$"], suptitle,
+                    diverging=[False, True])
+
+
+def residual_by_horizon(series: dict[str, tuple[list, list]], ylabel: str = "E (eq. IHJB_res)", title: str = ""):
+    """E against the horizon T on a log scale; ``series`` maps a label to (T values, E values)."""
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    markers = iter("osD^v<>")
+    for label, (ts, es) in series.items():
+        ax.semilogy(ts, es, marker=next(markers), label=label)
+    ax.set_xlabel("horizon $T$")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def loss_curve(history, title: str = ""):
+    """Training loss against step (Adam, then L-BFGS) on a log scale."""
+    fig, ax = plt.subplots(figsize=(5.5, 3.5))
+    steps, losses, phases = np.array(history.step), np.array(history.loss), np.array(history.phase)
+    for phase, style in (("adam", "-"), ("lbfgs", "-")):
+        m = phases == phase
+        if m.any():
+            ax.semilogy(steps[m], losses[m], style, label=phase)
+    ax.set_xlabel("step (L-BFGS: function evaluations after Adam)")
+    ax.set_ylabel("loss (MSE)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,94 @@
+"""Explorers over the horizon T or the weight R: one set of precomputed frames, two renderings.
+
+:func:`explorer` draws a figure for every value once (matplotlib, closed after rendering to PNG) and returns a
+:class:`FrameExplorer`. Displayed in a live Jupyter kernel it is an ipywidgets slider that swaps the
+precomputed images (instant response, no redrawing); on the static book site, where no kernel runs, the same
+output carries a self-contained HTML slider (inline images and a few lines of JavaScript, no CDN) that the
+book renders instead (``_config.yml`` puts ``text/html`` before the widget view for the HTML builder).
+"""
+from __future__ import annotations
+
+import base64
+import hashlib
+import html
+import io
+from typing import Callable, Sequence
+
+import matplotlib.pyplot as plt
+
+__all__ = ["FrameExplorer", "explorer", "figure_png"]
+
+
+def figure_png(fig, dpi: int = 90) -> bytes:
+    """PNG bytes of a figure, which is then closed."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight", metadata={"Software": None})
+    plt.close(fig)
+    return buf.getvalue()
+
+
+class FrameExplorer:
+    """Precomputed frames, one per value, with a live (ipywidgets) and a static (HTML + JS) rendering."""
+
+    def __init__(self, frames: Sequence[bytes], values: Sequence, label: str = "T", fmt: str = "{:g}",
+                 start: int = 0):
+        if len(frames) != len(values) or not frames:
+            raise ValueError(f"need one frame per value; got {len(frames)} frames for {len(values)} values")
+        self.frames = list(frames)
+        self.values = list(values)
+        self.label = label
+        self.fmt = fmt
+        self.start = int(start)
+
+    def _labels(self) -> list[str]:
+        return [self.fmt.format(v) for v in self.values]
+
+    def widget(self):
+        """An ipywidgets view: a selection slider over the values and the matching image."""
+        import ipywidgets as w
+
+        labels = self._labels()
+        image = w.Image(value=self.frames[self.start], format="png")
+        slider = w.SelectionSlider(options=list(zip(labels, range(len(labels)))), value=self.start,
+                                   description=f"{self.label} =", continuous_update=True,
+                                   layout=w.Layout(width="60%"))
+        slider.observe(lambda change: setattr(image, "value", self.frames[change["new"]]), names="value")
+        return w.VBox([slider, image])
+
+    def html(self) -> str:
+        """A self-contained HTML slider (no kernel, no network): inline PNGs swapped by a range input."""
+        digest = hashlib.sha1(b"".join(self.frames)).hexdigest()[:10]  # deterministic id per content
+        uid = f"pinnhjb-explorer-{digest}"
+        srcs = [f"data:image/png;base64,{base64.b64encode(f).decode()}" for f in self.frames]
+        labels = self._labels()
+        imgs = "".join(f'<img src="{s}" data-i="{i}" style="display:{"block" if i == self.start else "none"};'
+                       f'max-width:100%" alt="{html.escape(self.label)} = {html.escape(lab)}">'
+                       for i, (s, lab) in enumerate(zip(srcs, labels)))
+        label_js = ",".join(f'"{html.escape(lab)}"' for lab in labels)
+        return (f'<div class="pinnhjb-explorer" id="{uid}">'
+                f'<label>{html.escape(self.label)} = <span class="pinnhjb-value">{html.escape(labels[self.start])}'
+                f'</span></label> <input type="range" min="0" max="{len(srcs) - 1}" step="1" value="{self.start}" '
+                f'style="width:60%" aria-label="{html.escape(self.label)}">'
+                f'<div class="pinnhjb-frames">{imgs}</div>'
+                f'<script>(function(){{var r=document.getElementById("{uid}");var L=[{label_js}];'
+                f'var s=r.querySelector("input");s.addEventListener("input",function(){{'
+                f'r.querySelectorAll(".pinnhjb-frames img").forEach(function(im){{'
+                f'im.style.display=(im.dataset.i==s.value)?"block":"none";}});'
+                f'r.querySelector(".pinnhjb-value").textContent=L[s.value];}});}})();</script></div>')
+
+    def _repr_mimebundle_(self, include=None, exclude=None):
+        bundle = {"text/plain": f"FrameExplorer({self.label}: {', '.join(self._labels())})",
+                  "text/html": self.html()}
+        try:
+            w = self.widget()
+        except ImportError:  # no ipywidgets: the static slider still works in any browser
+            return bundle
+        widget_bundle = w._repr_mimebundle_() or {}
+        bundle.update({k: v for k, v in widget_bundle.items() if k != "text/plain"})
+        return bundle
+
+
+def explorer(draw: Callable[[object], "plt.Figure"], values: Sequence, label: str = "T", fmt: str = "{:g}",
+             start: int = 0, dpi: int = 90) -> FrameExplorer:
+    """Draw ``draw(value)`` for every value once and return a :class:`FrameExplorer` over the frames."""
+    return FrameExplorer([figure_png(draw(v), dpi=dpi) for v in values], values, label, fmt, start)
