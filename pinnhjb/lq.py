@@ -36,6 +36,7 @@ __all__ = [
     "ARESolution",
     "riccati_ode",
     "RiccatiSolution",
+    "convergence_bound",
 ]
 
 Array = NDArray[np.float64]
@@ -288,6 +289,60 @@ class RiccatiSolution:
         x_, P = self._points(x, t)
         Px = np.einsum("nij,nj->ni", P, x_)
         return -sla.solve(self.R, self.B.T @ Px.T, assume_a="pos").T
+
+    def transition(self, t: float | None = None) -> Array:
+        """Phi(t): the closed loop under the optimal time-varying policy maps x(0) to x(t) = Phi(t) x(0).
+
+        Integrates ``dPhi/dt = (A - B R^{-1} B' P(t)) Phi``, ``Phi(0) = I`` with ``solve_ivp``; default
+        ``t = horizon`` (so ``x_T(T) = Phi x0``, the end point in the bound after Theorem 1)."""
+        t_end = self.horizon if t is None else float(t)
+        if not 0.0 <= t_end <= self.horizon:
+            raise ValueError(f"t must lie in [0, {self.horizon}], got {t}")
+        n = self.A.shape[0]
+        if t_end == 0.0:
+            return np.eye(n)
+        G = _gain_matrix(self.B, self.R)
+
+        def rhs(tau: float, y: Array) -> Array:
+            return ((self.A - G @ self.at(tau)) @ y.reshape(n, n)).ravel()
+
+        sol = solve_ivp(rhs, (0.0, t_end), np.eye(n).ravel(), method="DOP853", rtol=1e-10, atol=1e-12)
+        if not sol.success:
+            raise RuntimeError(f"closed-loop transition integration failed: {sol.message}")
+        return sol.y[:, -1].reshape(n, n)
+
+
+def convergence_bound(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, P_psi: ArrayLike, horizon: float,
+                      x0: ArrayLike) -> dict:
+    """Exact LQ check of the uniform convergence of V_T(., 0) to V* (Theorem 1 and the bound after it).
+
+    For terminal cost ``psi(x) = x' P_psi x`` returns, over the initial states ``x0`` (N, n):
+    ``error`` = max |V_T(x0, 0; psi) - V*(x0)| and
+    ``bound`` = max{ max psi(x*(T)), max V*(x_T(T; 0)) } where x* is the optimal infinite-horizon closed loop
+    and x_T(.; 0) the optimal closed loop of the phi = 0 problem; also ``lower`` = max |V_T(.,0;0) - V*| and
+    ``upper`` = max |V_T(.,0;psi+V*) - V*|, the two ends of the sandwich (eq. (sandwich)).
+    """
+    A_, B_, Q_, R_ = _validate(A, B, Q, R)
+    x = np.asarray(x0, dtype=float)
+    P_star = care(A_, B_, Q_, R_)
+    P_psi_ = _symmetric("P_psi", _matrix("P_psi", P_psi, ("n", "n"), {"n": A_.shape[0]}), definite=False)
+
+    def quad(P, X):
+        return np.einsum("ni,ij,nj->n", X, P, X)
+
+    v_star = quad(P_star, x)
+    mid = riccati_ode(A_, B_, Q_, R_, horizon, P_T=P_psi_)
+    low = riccati_ode(A_, B_, Q_, R_, horizon)
+    high = riccati_ode(A_, B_, Q_, R_, horizon, P_T=P_psi_ + P_star)
+    x_star_T = x @ sla.expm((A_ - _gain_matrix(B_, R_) @ P_star) * horizon).T
+    x_zero_T = x @ low.transition().T
+    return {
+        "horizon": float(horizon),
+        "error": float(np.max(np.abs(quad(mid.at(0.0), x) - v_star))),
+        "lower": float(np.max(np.abs(quad(low.at(0.0), x) - v_star))),
+        "upper": float(np.max(np.abs(quad(high.at(0.0), x) - v_star))),
+        "bound": float(max(np.max(quad(P_psi_, x_star_T)), np.max(quad(P_star, x_zero_T)))),
+    }
 
 
 def riccati_ode(

@@ -33,8 +33,13 @@ def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str 
     fig = plt.figure(figsize=(4.6 * k, 4.0))
     for i, (z, title) in enumerate(zip(fields, titles)):
         ax = fig.add_subplot(1, k, i + 1, projection="3d")
-        cmap = DIVERGING if diverging and diverging[i] else CMAP
-        ax.plot_surface(x1, x2, z.reshape(x1.shape), cmap=cmap, linewidth=0, antialiased=True)
+        z = z.reshape(x1.shape)
+        if diverging and diverging[i]:  # errors: white at zero, symmetric colour scale
+            m = float(np.abs(z).max()) or 1.0
+            style = {"cmap": DIVERGING, "vmin": -m, "vmax": m}
+        else:
+            style = {"cmap": CMAP}
+        ax.plot_surface(x1, x2, z, linewidth=0, antialiased=True, **style)
         ax.set_xlabel("$x_1$")
         ax.set_ylabel("$x_2$")
         if zlabels:

@@ -26,7 +26,7 @@ from .storage import load, provenance, save
 from .systems import get_system
 
 __all__ = ["Case", "CASES", "cases", "run", "checkpoint_path", "reference_path", "load_case", "load_reference",
-           "load_results", "artifacts_dir", "DEFAULT_OUT"]
+           "load_results", "stored_seeds", "artifacts_dir", "DEFAULT_OUT"]
 
 DEFAULT_OUT = Path("artifacts")
 INF = math.inf
@@ -125,6 +125,12 @@ def artifacts_dir() -> Path:
 def load_case(case: str, seed: int = 0, out: Path | None = None, device=None):
     """The stored solution of a case (as the notebooks load it)."""
     return load(checkpoint_path(out or artifacts_dir(), case, seed), device=device)
+
+
+def stored_seeds(case: str, out: Path | None = None) -> list[int]:
+    """The seeds with a stored checkpoint for ``case``."""
+    folder = Path(out or artifacts_dir()) / "checkpoints" / case
+    return sorted(int(p.stem[4:]) for p in folder.glob("seed*.pt"))
 
 
 def load_reference(case: str | Case, horizon: float = INF, out: Path | None = None):

@@ -8,7 +8,6 @@
 """
 from __future__ import annotations
 
-import copy
 import math
 import warnings
 from typing import Callable
@@ -107,8 +106,8 @@ class FiniteHorizonSolver(_Solver):
                callback: Callable[[FiniteHorizonSolution], None] | None = None) -> FiniteHorizonSolution:
         """Theorem 2: extend ``solution`` from T to ``to`` in increments of ``step`` (default: one increment).
 
-        Each new stage trains V' only on [0, step] with terminal cost V_T(., 0) (a frozen copy of the
-        previous stage), warm-started from its weights when ``config.warm_start``. ``callback`` is called
+        Each new stage trains V' only on [0, step] with terminal cost V_T(., 0) (the previous stage's
+        frozen network), warm-started from its weights when ``config.warm_start``. ``callback`` is called
         with the chain after every stage (e.g. to save a checkpoint). On KeyboardInterrupt the stages done
         so far are returned with ``interrupted=True``.
         """
@@ -132,7 +131,7 @@ class FiniteHorizonSolver(_Solver):
         try:
             for end in ends:
                 prev = stages[-1]
-                terminal = ValueTerminalCost(copy.deepcopy(prev.model))
+                terminal = ValueTerminalCost(prev.model)  # frozen after training; shared, not copied
                 stage = self._train_stage(float(end - prev.end), prev.end, terminal, prev.model, len(stages))
                 stages.append(stage)
                 current = self._finish(stages, solution.terminal_spec)

@@ -5,6 +5,9 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
+from scipy.integrate import solve_ivp
+
+from pinnhjb import lq
 from pinnhjb.lq import are_residual, are_solutions, care, lqr_gain, riccati_ode
 
 # 2-state: unstable, Hamiltonian eigenvalues +-1.126, +-2.175 (distinct, real)
@@ -229,3 +232,27 @@ def test_bad_input_other_arguments() -> None:
         riccati_ode(A2, B2, Q2, R2, 1.0, t_eval=[0.0, 2.0])
     with pytest.raises(ValueError, match=r"^x must"):
         riccati_ode(A2, B2, Q2, R2, 1.0).value(np.ones((4, 3)), 0.0)
+
+
+# --------------------------------------------------------------------- convergence bound (Theorem 1)
+def test_convergence_bound_holds_and_error_vanishes_with_the_horizon():
+    A = np.array([[0.0, 1.0], [2.0, -1.0]])
+    B = np.array([[0.0], [1.0]])
+    Q, R = np.eye(2), np.eye(1)
+    side = np.linspace(-1.0, 1.0, 11)
+    x0 = np.stack(np.meshgrid(side, side, indexing="ij"), -1).reshape(-1, 2)
+    rows = [lq.convergence_bound(A, B, Q, R, np.eye(2), T, x0) for T in (0.5, 1.0, 2.0, 4.0, 8.0)]
+    for r in rows:
+        assert r["error"] <= max(r["lower"], r["upper"]) + 1e-9  # eq. (sandwich)
+        assert max(r["lower"], r["upper"]) <= r["bound"] + 1e-9  # eqs. (ineq2), (final)
+    errors = [r["error"] for r in rows]
+    assert all(b < a for a, b in zip(errors, errors[1:])) and errors[-1] < 1e-3
+
+
+def test_transition_matches_simulated_closed_loop():
+    A = np.array([[0.0, 1.0], [2.0, -1.0]])
+    B = np.array([[0.0], [1.0]])
+    sol = lq.riccati_ode(A, B, np.eye(2), np.eye(1), 2.0)
+    x0 = np.array([0.3, -0.2])
+    ode = solve_ivp(lambda t, x: A @ x + (B @ sol.policy(x[None], t)[0]), (0.0, 2.0), x0, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sol.transition() @ x0, ode.y[:, -1], atol=1e-7)
