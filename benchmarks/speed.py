@@ -8,7 +8,7 @@ One run trains, in this one process, one after the other (so every method sees t
 * ``default``        our default recipe (``TrainConfig.preset("default")``) on the same extension chain.
 * ``deepxde``        DeepXDE (PyTorch backend) in its natural set-up: the whole horizon in one stage on
                      ``GeometryXTime(Rectangle, TimeDomain)`` in reversed time s = T - t, the terminal condition
-                     V(x, s=0) = 0 a soft ``dde.icbc.IC``, V(0, s) = 0 a soft ``PointSetBC``; the total optimiser
+                     V(x, s=0) = 0 and V(0, s) = 0 soft ``PointSetBC`` s; the total optimiser
                      budget of our default chain (8 x Adam steps, then 8 x L-BFGS iterations).
 * ``deepxde-chain``  DeepXDE on our extension chain, built by hand with DeepXDE's API: every stage a
                      ``TimePDE`` on [0, 0.5] whose terminal condition is a ``PointSetBC`` with values from the
@@ -61,7 +61,7 @@ PAPER_E_QUARTIC = 1.536e-4  # the paper's reported final E at T = 4 (Section 6.2
 DESCRIPTIONS = {
     "paper": "paper's recipe (preset `paper`), chain 0.5 -> 4",
     "default": "ours (preset `default`), chain 0.5 -> 4",
-    "deepxde": "DeepXDE, one stage [0, 4], soft IC",
+    "deepxde": "DeepXDE, one stage [0, 4], soft terminal condition",
     "deepxde-chain": "DeepXDE, chain 0.5 -> 4 (PointSetBC from predict)",
 }
 
@@ -304,24 +304,22 @@ def run_deepxde(method: str, args, system, dde) -> Run:
         # V(0, s) = 0: soft, on n_origin points (mini-batches of nb per step, DeepXDE's PointSetBC batching).
         s_origin = np.random.uniform(0.0, length, size=(cfg.n_origin, 1))
         origin_pts = np.hstack([np.zeros((cfg.n_origin, system.n)), s_origin])
-        # Terminal condition V(x, s=0) = phi(x): phi = 0 as a DeepXDE IC (one stage), or phi = V_prev(x, t=0)
+        # Terminal condition V(x, s=0) = phi(x): phi = 0 (one stage, first stage), or phi = V_prev(x, t=0)
         # = previous model's predict at its s_end, as a PointSetBC on n_boundary points (chain).
+        # (phi = 0 on stage 1 is a PointSetBC of zeros too: DeepXDE's IC resamples a varying number of initial
+        # points per step, which its PDEPointResampler rejects with "`num_bcs` changed".)
+        xs = np.random.uniform(lo, hi, size=(cfg.n_boundary, system.n))
+        term_pts = np.hstack([xs, np.zeros((cfg.n_boundary, 1))])
         if prev is None:
-            term_pts = term_vals = None
+            term_vals = np.zeros((cfg.n_boundary, 1))
         else:
-            xs = np.random.uniform(lo, hi, size=(cfg.n_boundary, system.n))
-            term_pts = np.hstack([xs, np.zeros((cfg.n_boundary, 1))])
             term_vals = prev.predict(np.hstack([xs, np.full((cfg.n_boundary, 1), lengths[k - 1])]))
 
         def bcs(nb, batched):
             kw = {"batch_size": nb} if batched else {}
             sl = slice(None) if batched else slice(0, nb)
-            out = [dde.icbc.PointSetBC(origin_pts[sl], np.zeros((len(origin_pts[sl]), 1)), **kw)]
-            if term_pts is None:
-                out.append(dde.icbc.IC(geom, lambda x: np.zeros((len(x), 1)), lambda _, on_initial: on_initial))
-            else:
-                out.append(dde.icbc.PointSetBC(term_pts[sl], term_vals[sl], **kw))
-            return out, (nb if term_pts is None else 0)
+            return [dde.icbc.PointSetBC(origin_pts[sl], np.zeros((len(origin_pts[sl]), 1)), **kw),
+                    dde.icbc.PointSetBC(term_pts[sl], term_vals[sl], **kw)], 0
 
         # ---- Adam: 1000 fresh flow points every step (PDEPointResampler), cosine decay as our default.
         t0 = time.perf_counter()

@@ -82,6 +82,12 @@ def _evaluate(args) -> int:
 def _reproduce(args) -> int:
     from .reproduce import run
 
+    if args.tables_only:
+        from .reproduce import rewrite_tables
+
+        rewrite_tables(args.out)
+        print(f"tables rewritten: {args.out}/results/reproduce.md")
+        return 0
     only = args.cases.split(",") if args.cases else None
     result = run(out=args.out, seeds=args.seeds, quick=args.quick, only=only, progress=not args.no_progress)
     print(f"results: {args.out}/results/reproduce.md ({result['meta']['wall_time']:.0f} s)")
@@ -116,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seeds", type=int, default=3)
     r.add_argument("--out", default="artifacts", help="folder for checkpoints, reference grids and results")
     r.add_argument("--cases", default=None, help="comma-separated subset of case names")
+    r.add_argument("--tables-only", action="store_true", help="rewrite the results tables from stored records")
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(func=_reproduce)
     return p
