@@ -10,8 +10,7 @@ import math
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["grid_2d", "surfaces", "value_policy_residual", "value_and_error", "policy_and_error",
-           "residual_by_horizon", "loss_curve"]
+__all__ = ["grid_2d", "surfaces", "value_policy_residual", "value_and_error", "policy_and_error", "loss_curve"]
 
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
@@ -108,30 +107,14 @@ def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: st
                     diverging=[False, True])
 
 
-def residual_by_horizon(series: dict[str, tuple[list, list]], ylabel: str = "E (eq. IHJB_res)", title: str = ""):
-    """E against the horizon T on a log scale; ``series`` maps a label to (T values, E values)."""
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    markers = iter("osD^v<>")
-    for label, (ts, es) in series.items():
-        ax.semilogy(ts, es, marker=next(markers), label=label)
-    ax.set_xlabel("horizon $T$")
-    ax.set_ylabel(ylabel)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    if title:
-        ax.set_title(title)
-    fig.tight_layout()
-    return fig
-
-
 def loss_curve(history, title: str = ""):
     """Training loss against step (Adam, then L-BFGS) on a log scale."""
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     steps, losses, phases = np.array(history.step), np.array(history.loss), np.array(history.phase)
-    for phase, style in (("adam", "-"), ("lbfgs", "-")):
+    for phase in ("adam", "lbfgs"):
         m = phases == phase
         if m.any():
-            ax.semilogy(steps[m], losses[m], style, label=phase)
+            ax.semilogy(steps[m], losses[m], label=phase)
     ax.set_xlabel("step (L-BFGS: function evaluations after Adam)")
     ax.set_ylabel("loss (MSE)")
     ax.grid(True, which="both", alpha=0.3)
