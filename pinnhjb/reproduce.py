@@ -26,7 +26,8 @@ from .storage import load, provenance, save
 from .systems import get_system
 
 __all__ = ["Case", "CASES", "cases", "run", "checkpoint_path", "reference_path", "load_case", "load_reference",
-           "load_results", "rewrite_tables", "stored_seeds", "artifacts_dir", "DEFAULT_OUT"]
+           "load_results", "rewrite_tables", "stored_seeds", "stage_metric", "reference_residual", "artifacts_dir",
+           "DEFAULT_OUT"]
 
 DEFAULT_OUT = Path("artifacts")
 INF = math.inf
@@ -131,6 +132,22 @@ def stored_seeds(case: str, out: Path | None = None) -> list[int]:
     """The seeds with a stored checkpoint for ``case``."""
     folder = Path(out or artifacts_dir()) / "checkpoints" / case
     return sorted(int(p.stem[4:]) for p in folder.glob("seed*.pt"))
+
+
+def stage_metric(case: str, key: str, out: Path | None = None) -> dict[float, list[float]]:
+    """Metric ``key`` of every stored seed of a chain case, per horizon: ``{T: [value per seed]}``."""
+    spec = next(c for c in CASES if c.name == case)
+    values: dict[float, list[float]] = {T: [] for T in spec.horizons}
+    for seed in stored_seeds(case, out):
+        for T, row in zip(spec.horizons, load_case(case, seed, out).summary()):
+            values[T].append(row[key])
+    return values
+
+
+def reference_residual(case: str | Case, horizon: float, out: Path | None = None) -> float:
+    """E of the stored exact (reference) V_T(., 0): the part of a PINN's E that is due to the horizon alone."""
+    case = case if isinstance(case, Case) else next(c for c in CASES if c.name == case)
+    return _reference_residual(case.build_system(), load_reference(case, horizon, out))
 
 
 def load_reference(case: str | Case, horizon: float = INF, out: Path | None = None):
