@@ -13,14 +13,13 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from .config import TrainConfig
-from .metrics import closed_loop
 from .solver import FiniteHorizonSolver, SteadyStateSolver
 from .storage import load, provenance, save
 from .systems import get_system

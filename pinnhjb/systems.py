@@ -93,6 +93,7 @@ class ControlAffineSystem:
         object.__setattr__(self, "domain", dom)
         object.__setattr__(self, "train_domain", train)
         object.__setattr__(self, "R", R)
+        object.__setattr__(self, "_R_inv", np.linalg.inv(R))
         object.__setattr__(self, "n", n)
         object.__setattr__(self, "m", m)
         self._check_functions()
@@ -137,7 +138,7 @@ class ControlAffineSystem:
         return torch.as_tensor(self.R, dtype=like.dtype, device=like.device)
 
     def R_inv_tensor(self, like: Tensor) -> Tensor:
-        return torch.as_tensor(np.linalg.inv(self.R), dtype=like.dtype, device=like.device)
+        return torch.as_tensor(self._R_inv, dtype=like.dtype, device=like.device)
 
     def check_states(self, x: Tensor, what: str = "x") -> Tensor:
         """Validate a batch of states: a tensor of shape (N, n) with finite entries."""

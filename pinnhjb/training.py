@@ -12,7 +12,6 @@ import math
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -319,8 +318,3 @@ def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, see
     return _optimize(model.net.parameters(), lambda batch: _steady_state_loss(system, model, batch), sample,
                      epochs, config, desc, progress)
 
-
-def numpy_seed_everything(seed: int):
-    """Seed torch's global RNG (network initialisation) and numpy."""
-    torch.manual_seed(int(seed))
-    np.random.seed(int(seed) % (2**32))
