@@ -161,6 +161,31 @@ class FiniteHorizonValue(_Scaled):
         out = self.correction(x, t)
         return out + self.terminal_cost(x) if self.ansatz else out
 
+    def correction_derivatives(self, x: Tensor, t: Tensor, origin_times: Tensor | None = None,
+                               origin_index: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """grad_x and d/dt of :meth:`correction` per point, kept differentiable in the weights (for training).
+
+        With ``origin_times`` (K,) and ``origin_index`` (N,) such that ``t = origin_times[origin_index]``, the
+        origin term N(0, t) of the ansatz is evaluated at the K distinct times only and gathered, instead of
+        a second full forward pass over all N points: the same function and derivatives, about half the cost
+        of a training step when K << N. Without them every point's N(0, t_i) is evaluated.
+        """
+        x = x.detach().requires_grad_(True)
+        t = t.detach().requires_grad_(True)
+        if not self.ansatz:
+            gx, gt = torch.autograd.grad(self.raw(x, t).sum(), (x, t), create_graph=True)
+            return gx, gt
+        if origin_times is None:
+            origin_times, origin_index = t, torch.arange(t.shape[0], device=t.device)
+        origin_times = origin_times.detach().requires_grad_(True)
+        n_x = self.raw(x, t)
+        n_0 = self.raw(torch.zeros(origin_times.shape[0], x.shape[1], dtype=x.dtype, device=x.device), origin_times)
+        # Each output depends on its own row only, so one backward gives every per-point derivative.
+        gx, nt_x, nt_0 = torch.autograd.grad(n_x.sum() + n_0.sum(), (x, t, origin_times), create_graph=True)
+        diff, dt_diff = n_x - n_0[origin_index], nt_x - nt_0[origin_index]
+        s = (self.horizon - t) / self.horizon
+        return s.unsqueeze(-1) * gx, s * dt_diff - diff / self.horizon
+
 
 class SteadyStateValue(_Scaled):
     """V(x) for the direct steady-state PINN on eq. (4): N(x) - N(0) (ansatz) or N(x) (soft, as the paper)."""

@@ -102,12 +102,13 @@ class _Data:
 # ---------------------------------------------------------------------- losses
 
 def _finite_horizon_loss(system, model: FiniteHorizonValue, flow: dict, t: Tensor, boundary: dict | None,
-                         t_origin: Tensor | None) -> Tensor:
-    """MSE of eq. (MSE) for one batch. ``flow`` holds cached states; phi's gradient is added under the ansatz."""
-    x = flow["x"].detach().requires_grad_(True)
-    t = t.detach().requires_grad_(True)
-    c = model.correction(x, t)
-    gx, gt = torch.autograd.grad(c.sum(), (x, t), create_graph=True)
+                         t_origin: Tensor | None, shared_times: tuple | None = None) -> Tensor:
+    """MSE of eq. (MSE) for one batch. ``flow`` holds cached states; phi's gradient is added under the ansatz.
+
+    ``shared_times = (times, index)`` says that ``t = times[index]`` (see ``TrainConfig.points_per_time``).
+    """
+    x = flow["x"]
+    gx, gt = model.correction_derivatives(x, t, *(shared_times or (None, None)))
     if model.ansatz:
         gx = gx + flow["dphi"]
     f_e = gt + system.hamiltonian_min(x, gx, flow["fx"], flow["gx"], flow["qx"])
@@ -271,6 +272,11 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
 
     def sample(size):
         flow = pool.take(_randint(gen, len(pool), size, device))
+        if model.ansatz and config.points_per_time is not None and config.points_per_time > 1:
+            k = -(-size // config.points_per_time)
+            times = _uniform(gen, k, T, dtype, device)
+            index = torch.arange(size, device=device) % k
+            return flow, times[index], None, None, (times, index)
         t = _uniform(gen, size, T, dtype, device)
         if model.ansatz:
             return flow, t, None, None

@@ -213,3 +213,18 @@ def test_create_graph_allows_training_through_the_residual():
 def test_freshly_built_model_can_be_evaluated():
     model = FiniteHorizonValue(2, 1.0, BOX, width=8, depth=1)
     assert model(torch.zeros(3, 2), 0.5).shape == (3,)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_correction_derivatives_match_autograd_of_the_value(shared):
+    """The training path (origin term at shared times, manual chain rule in t) equals autograd of v - phi."""
+    torch.manual_seed(0)
+    model = FiniteHorizonValue(2, 0.7, [[-1, 1], [-2, 2]]).double()
+    x = torch.randn(12, 2, dtype=torch.float64)
+    times = torch.rand(4, dtype=torch.float64) * 0.7
+    index = torch.arange(12) % 4
+    t = times[index]
+    _, gx, gt = value_and_gradients(model, x, t)
+    dx, dt = model.correction_derivatives(x, t, *((times, index) if shared else (None, None)))
+    torch.testing.assert_close(dx, gx, rtol=0, atol=1e-12)
+    torch.testing.assert_close(dt, gt, rtol=0, atol=1e-12)
