@@ -23,7 +23,7 @@ Tensor = torch.Tensor
 ValueFn = Callable[[Tensor], Tensor]
 
 __all__ = ["default_points_per_dim", "evaluation_grid", "infinite_horizon_residual", "flow_residual_field",
-           "optimality_errors", "policy_of", "closed_loop", "ClosedLoopResult"]
+           "optimality_errors", "policy_of", "closed_loop", "ClosedLoopResult", "quadratic_fields"]
 
 
 def default_points_per_dim(n: int) -> int:
@@ -157,3 +157,16 @@ def closed_loop(system, policy: Callable[[Tensor], Tensor], x0, t_final: float =
     final = np.linalg.norm(xt[-1], axis=-1)
     return ClosedLoopResult(t=np.linspace(0.0, steps * dt, steps + 1), x=xt, u=torch.stack(us).numpy(),
                             cost=z[:, -1].numpy(), stabilized=np.isfinite(final) & (final < tol))
+
+
+def quadratic_fields(A, B, Q, R, P, x) -> dict:
+    """Exact LQ counterparts of a learned solution's fields for V(x) = x'Px on ``x`` (N, n), numpy in and out:
+    ``value`` x'Px, ``policy`` -R^{-1} B'P x (N, m) and ``residual`` E_e(x; V) = 2 x'P A x + x'Qx - x'P B R^{-1} B'P x
+    (eq. (flow_res); zero for every solution of the algebraic Riccati equation)."""
+    A, B, Q, R, P = (np.atleast_2d(np.asarray(M, dtype=float)) for M in (A, B, Q, R, P))
+    x = np.asarray(x, dtype=float)
+    Px = x @ P.T
+    u = -np.linalg.solve(R, B.T @ Px.T).T
+    quad = lambda M, y: np.einsum("ni,ij,nj->n", y, M, y)  # noqa: E731
+    residual = 2 * np.einsum("ni,ni->n", Px, x @ A.T) + quad(Q, x) - quad(np.linalg.solve(R.T, B.T).T @ B.T, Px)
+    return {"value": quad(P, x), "policy": u, "residual": residual}

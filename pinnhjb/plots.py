@@ -10,7 +10,8 @@ import math
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["grid_2d", "surfaces", "value_policy_residual", "value_and_error", "policy_and_error", "loss_curve"]
+__all__ = ["grid_2d", "slice_mesh", "surfaces", "value_policy_residual", "value_policy_residual_slice",
+           "value_and_error", "policy_and_error", "loss_curve"]
 
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
@@ -25,8 +26,22 @@ def grid_2d(system, points_per_dim: int = 41):
     return x1, x2, np.stack([x1.ravel(), x2.ravel()], -1)
 
 
+def slice_mesh(system, axes: tuple[int, int] = (0, 1), fixed=None, points_per_dim: int = 31):
+    """Mesh over a plane through Omega: coordinates ``axes`` span Omega, every other one is held at ``fixed``
+    (a scalar for all of them or an (n,) array; default 0). Returns (X1, X2, points (N, n))."""
+    i, j = axes
+    if not (0 <= i < system.n and 0 <= j < system.n and i != j):
+        raise ValueError(f"axes must be two different coordinates of the {system.n}-D state; got {axes}")
+    base = np.broadcast_to(np.asarray(0.0 if fixed is None else fixed, dtype=float), (system.n,))
+    (a, b), (c, d) = system.domain[i], system.domain[j]
+    x1, x2 = np.meshgrid(np.linspace(a, b, points_per_dim), np.linspace(c, d, points_per_dim), indexing="ij")
+    pts = np.tile(base, (x1.size, 1))
+    pts[:, i], pts[:, j] = x1.ravel(), x2.ravel()
+    return x1, x2, pts
+
+
 def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str = "", zlabels=None,
-             diverging: list[bool] | None = None):
+             diverging: list[bool] | None = None, axis_labels: tuple[str, str] = ("$x_1$", "$x_2$")):
     """Side-by-side 3-D surfaces of fields on the mesh (x1, x2), as in the paper's figures."""
     k = len(fields)
     fig = plt.figure(figsize=(4.6 * k, 4.0))
@@ -39,8 +54,8 @@ def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str 
         else:
             style = {"cmap": CMAP}
         ax.plot_surface(x1, x2, z, linewidth=0, antialiased=True, **style)
-        ax.set_xlabel("$x_1$")
-        ax.set_ylabel("$x_2$")
+        ax.set_xlabel(axis_labels[0])
+        ax.set_ylabel(axis_labels[1])
         if zlabels:
             ax.set_zlabel(zlabels[i])
         ax.set_title(title, fontsize=10)
@@ -63,6 +78,17 @@ def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = ""):
     v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2
     return surfaces(x1, x2, [v, u, e], [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0)$",
                                        rf"$E_e(x;\hat V_{{{T}}})^2$"], suptitle)
+
+
+def value_policy_residual_slice(sol, axes: tuple[int, int] = (0, 1), fixed=None, points_per_dim: int = 31,
+                                suptitle: str = ""):
+    """:func:`value_policy_residual` on a plane through Omega (for n > 2), e.g. x3 = 0 of a 3-D system."""
+    x1, x2, pts = slice_mesh(sol.system, axes, fixed, points_per_dim)
+    T = _t_label(sol)
+    v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2
+    return surfaces(x1, x2, [v, u, e], [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0)$",
+                                       rf"$E_e(x;\hat V_{{{T}}})^2$"], suptitle,
+                    axis_labels=(f"$x_{axes[0] + 1}$", f"$x_{axes[1] + 1}$"))
 
 
 def _reference_on(sol, pts, reference, which: str):

@@ -1,0 +1,43 @@
+"""Helpers the notebooks call: plane slices of a 3-D solution, exact LQ fields."""
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import pinnhjb as ph  # noqa: E402
+from pinnhjb import plots  # noqa: E402
+
+
+def test_slice_mesh_holds_the_other_coordinates():
+    system = ph.systems.third_order(R=1.0)
+    x1, x2, pts = plots.slice_mesh(system, axes=(0, 2), fixed=0.05, points_per_dim=7)
+    assert x1.shape == (7, 7) and pts.shape == (49, 3)
+    assert np.all(pts[:, 1] == 0.05)
+    assert np.allclose(pts[:, 0], x1.ravel()) and np.allclose(pts[:, 2], x2.ravel())
+    assert pts[:, 0].min() == pytest.approx(-0.2) and pts[:, 2].max() == pytest.approx(0.2)
+    with pytest.raises(ValueError, match="two different coordinates"):
+        plots.slice_mesh(system, axes=(1, 1))
+
+
+def test_value_policy_residual_slice_draws_three_panels():
+    sol = ph.FiniteHorizonSolver(ph.systems.third_order(R=1.0), config="quick", seed=0, progress=False).solve(0.5)
+    fig = plots.value_policy_residual_slice(sol, fixed=0.0, points_per_dim=5)
+    assert len(fig.axes) == 3 and fig.axes[0].get_xlabel() == "$x_1$" and fig.axes[0].get_ylabel() == "$x_2$"
+    plt.close(fig)
+
+
+def test_quadratic_fields_are_exact():
+    A = np.array([[0.0, 1.0], [2.0, -1.0]])
+    B = np.array([[0.0], [1.0]])
+    Q, R = np.eye(2), np.array([[0.3]])
+    x = np.random.default_rng(0).normal(size=(6, 2))
+    star = ph.metrics.quadratic_fields(A, B, Q, R, ph.lq.care(A, B, Q, R), x)
+    assert np.abs(star["residual"]).max() < 1e-9                      # V* solves the steady-state HJB
+    ode = ph.lq.riccati_ode(A, B, Q, R, 1.0)
+    fields = ph.metrics.quadratic_fields(A, B, Q, R, ode.at(0.0), x)
+    assert np.allclose(fields["policy"], ode.policy(x, 0.0))
+    assert np.allclose(fields["value"], ode.value(x, 0.0))
+    dP = ode.derivative(0.0)                                           # E_e(x; V_T(., 0)) = -dV_T/dt at t = 0
+    assert np.allclose(fields["residual"], -np.einsum("ni,ij,nj->n", x, dP, x))
