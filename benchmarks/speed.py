@@ -15,9 +15,9 @@ One run trains, in this one process, one after the other (so every method sees t
                      previous stage's ``model.predict`` at its t = 0, warm-started, with our default's per-stage
                      budget.
 
-``default`` and both DeepXDE runs use the same 3 x 100 tanh network with inputs scaled to [-1, 1], float32, 1000
-fresh flow points per Adam step with the default's learning rate and cosine decay, then L-BFGS on 6000 fixed
-points; ``paper`` uses the paper's own network (3 x 250 for this system), data, optimiser and stop rule. E is eq. (IHJB_res), mean over a 101 x 101 grid of Omega of E_e(x)^2 plus V(0)^2,
+``default`` and both DeepXDE runs use the same network (our default's width x depth tanh) with inputs scaled to
+[-1, 1], float32, the default's number of fresh flow points per Adam step, learning rate and cosine decay, then
+L-BFGS on the default's number of fixed points; ``paper`` uses the paper's own network (3 x 250 for this system), data, optimiser and stop rule. E is eq. (IHJB_res), mean over a 101 x 101 grid of Omega of E_e(x)^2 plus V(0)^2,
 computed for every method by the one function :func:`measure` (``pinnhjb.metrics``); E is checked after every
 stage of a chain and every ``--checkpoint-every`` Adam steps / ``--lbfgs-checkpoint-every`` L-BFGS iterations of
 the one-stage run, with the training clock paused. Times to a target count training only; set-up (data, cached
@@ -323,7 +323,7 @@ def run_deepxde(method: str, args, system, dde) -> Run:
             return [dde.icbc.PointSetBC(origin_pts[sl], np.zeros((len(origin_pts[sl]), 1)), **kw),
                     dde.icbc.PointSetBC(term_pts[sl], term_vals[sl], **kw)], 0
 
-        # ---- Adam: 1000 fresh flow points every step (PDEPointResampler), cosine decay as our default.
+        # ---- Adam: batch_size fresh flow points every step (PDEPointResampler), cosine decay as our default.
         t0 = time.perf_counter()
         ic_bcs, n_init = bcs(nb_adam, batched=True)
         data = dde.data.TimePDE(geom, pde, ic_bcs, num_domain=cfg.batch_size, num_initial=n_init,
