@@ -126,14 +126,18 @@ def _wait_for_math(page):
     """Wait until MathJax (if the page has math) has typeset everything."""
     has_math = page.evaluate("() => document.querySelector('.math') !== null")
     if has_math:
-        page.wait_for_function("() => window.MathJax && MathJax.startup && MathJax.startup.promise", timeout=30_000)
+        try:
+            page.wait_for_function("() => window.MathJax && MathJax.startup && MathJax.startup.promise",
+                                   timeout=30_000)
+        except Exception as exc:  # playwright's TimeoutError
+            raise AssertionError(f"{page.url}: the page has math but MathJax never started") \
+                from exc
         page.evaluate("() => MathJax.startup.promise")
     return has_math
 
 
 def _check_page(page, requests, failures, server, rel):
     host = urlparse(server).netloc
-    has_math = _wait_for_math(page)
     page.evaluate("() => window.scrollTo(0, document.body.scrollHeight)")  # anything loaded lazily, too
     page.wait_for_load_state("networkidle")
     page.evaluate("() => window.scrollTo(0, 0)")
@@ -142,6 +146,7 @@ def _check_page(page, requests, failures, server, rel):
                 and urlparse(u).netloc != host]
     assert not external, f"{rel}: requests left the machine: {external}"
     assert not failures, f"{rel}: failed requests: {failures}"
+    has_math = _wait_for_math(page)
 
     if has_math:
         n_math = page.evaluate("() => document.querySelectorAll('.math').length")
