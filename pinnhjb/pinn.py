@@ -98,17 +98,23 @@ class QuadraticTerminalCost(nn.Module):
 
 
 class CallableTerminalCost(nn.Module):
-    """phi given by a user's batched torch callable x (N,n) -> (N,). Not storable in a checkpoint."""
+    """phi given by a user's batched torch callable x (N,n) -> (N,).
 
-    def __init__(self, fn: Callable[[Tensor], Tensor]):
+    Code is not stored in a checkpoint: without ``name`` such a solution cannot be saved; with a ``name`` it
+    is saved under that name, and :func:`pinnhjb.load` then asks for the same function back
+    (``terminal_cost=``) instead of silently using another phi.
+    """
+
+    def __init__(self, fn: Callable[[Tensor], Tensor], name: str | None = None):
         super().__init__()
         self.fn = fn
+        self.name = name
 
     def forward(self, x: Tensor) -> Tensor:
         return self.fn(x)
 
     def spec(self) -> dict:
-        return {"kind": "callable"}
+        return {"kind": "callable"} if self.name is None else {"kind": "named", "name": self.name}
 
 
 class ValueTerminalCost(nn.Module):

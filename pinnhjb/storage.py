@@ -87,7 +87,7 @@ def save(solution, path, **extra) -> Path:
     if isinstance(solution, FiniteHorizonSolution):
         if solution.terminal_spec.get("kind") == "callable":
             raise CheckpointError("a solution whose first terminal cost is a Python callable cannot be saved; "
-                                  "use a matrix (x'Px) or zero terminal cost")
+                                  "use a matrix (x'Px), zero, or CallableTerminalCost(fn, name=...)")
         base.update(kind="finite_horizon", terminal=solution.terminal_spec, interrupted=solution.interrupted,
                     wall_time=solution.wall_time,
                     stages=[{"start": s.start, "length": s.length, "seed": s.seed, "state": _state(s.model),
@@ -125,9 +125,23 @@ def _load_state(model, state: dict, what: str):
                               f"config: {exc}") from exc
 
 
-def load(path, system=None, device=None, config: TrainConfig | None = None):
+def _terminal(term: dict, given, path):
+    """The first stage's terminal cost from its stored spec (and the caller's function for a named one)."""
+    if term["kind"] == "named":
+        if given is None or getattr(given, "name", None) != term["name"]:
+            raise CheckpointError(f"{path} was trained with the terminal cost {term['name']!r}, which is code: pass "
+                                  f"terminal_cost=CallableTerminalCost(fn, name={term['name']!r})")
+        return given
+    if given is not None:
+        raise CheckpointError(f"{path} stores its own terminal cost ({term['kind']}); do not pass terminal_cost")
+    return QuadraticTerminalCost(term["P"]) if term["kind"] == "quadratic" else ZeroTerminalCost()
+
+
+def load(path, system=None, device=None, config: TrainConfig | None = None, terminal_cost=None):
     """Load a solution saved by :func:`save`. ``system`` is rebuilt from the registry when omitted (and
-    checked against the checkpoint when given); ``config``, if given, must match the stored architecture."""
+    checked against the checkpoint when given); ``config``, if given, must match the stored architecture.
+    ``terminal_cost`` (a :class:`~pinnhjb.pinn.CallableTerminalCost` of the same name) is required for, and
+    only for, a checkpoint saved with a named callable terminal cost."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint at {path}")
@@ -159,7 +173,7 @@ def load(path, system=None, device=None, config: TrainConfig | None = None):
                                   ckpt["metrics"])
     else:
         term = ckpt["terminal"]
-        terminal = QuadraticTerminalCost(term["P"]) if term["kind"] == "quadratic" else ZeroTerminalCost()
+        terminal = _terminal(term, terminal_cost, path)
         stages: list[Stage] = []
         for i, st in enumerate(ckpt["stages"]):
             phi = terminal if i == 0 else ValueTerminalCost(stages[-1].model)

@@ -13,8 +13,8 @@ trained with ``e = 0`` (terminal cost V* itself) measures it.
 
 ``python -m pinnhjb.theorem3 [--out artifacts/theorem3]`` trains the three stages of :data:`ERRORS` (seeded,
 fixed step counts, about 20 s each on two CPU cores) and stores them with :func:`pinnhjb.storage.save`.
-A Python callable terminal cost cannot be stored in a checkpoint, so the stage is saved with its
-correction network only and the provenance names its error; :func:`load` re-attaches V* + e.
+The terminal cost V* + e is code, so the checkpoint stores it by name and :func:`load` passes the same
+function back (``pinnhjb.load`` refuses such a checkpoint without it).
 """
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ def config() -> TrainConfig:
 def terminal_cost(error: str) -> CallableTerminalCost:
     """phi = V* + e: the exact V_T (= V*, a fixed point of the extension) carrying the error ``e``."""
     system, e = quartic(), ERRORS[error]
-    return CallableTerminalCost(lambda x: system.value_star(x) + e(x))
+    return CallableTerminalCost(lambda x: system.value_star(x) + e(x), name=f"V*(x) + {FORMULAS[error]}")
 
 
 def train(error: str, seed: int = SEED, delta: float = DELTA, progress: bool = False) -> FiniteHorizonSolution:
@@ -81,22 +81,14 @@ def path(error: str, out: Path | None = None) -> Path:
 
 
 def save(sol: FiniteHorizonSolution, error: str, out: Path | None = None, **extra) -> Path:
-    """Store the stage's networks and metrics; the terminal cost V* + e is named in the provenance and
-    re-attached by :func:`load` (the checkpoint format stores zero and quadratic terminal costs only)."""
-    storable = FiniteHorizonSolution(sol.system, sol.config, sol.stages, {"kind": "zero"})
-    return _save(storable, path(error, out), seed=sol.stages[0].seed, case="theorem3", theorem3_error=error,
+    """Store the stage's networks and metrics; the terminal cost V* + e is stored by name (see :func:`load`)."""
+    return _save(sol, path(error, out), seed=sol.stages[0].seed, case="theorem3", theorem3_error=error,
                  theorem3_terminal=f"V*(x) + {FORMULAS[error]}", theorem3_delta=sol.horizon, **extra)
 
 
 def load(error: str, out: Path | None = None) -> FiniteHorizonSolution:
     """A stored stage with its terminal cost V* + e re-attached."""
-    sol = _load(path(error, out), device="cpu")
-    if sol.provenance.get("theorem3_error") != error:
-        raise ValueError(f"{path(error, out)} was stored for error {sol.provenance.get('theorem3_error')!r}")
-    phi = terminal_cost(error)
-    for stage in sol.stages:
-        stage.model.terminal_cost = phi
-    sol.terminal_spec = phi.spec()
+    sol = _load(path(error, out), device="cpu", terminal_cost=terminal_cost(error))
     sol.error = error
     return sol
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import pinnhjb as ph
-from pinnhjb.pinn import FiniteHorizonValue
+from pinnhjb.pinn import CallableTerminalCost, FiniteHorizonValue
 from pinnhjb.solution import FiniteHorizonSolution, Stage
 from pinnhjb.storage import FORMAT, CheckpointError
 from pinnhjb.training import TrainHistory
@@ -247,3 +247,21 @@ def test_callable_terminal_cost_cannot_be_saved(tmp_path, config):
 def test_save_rejects_non_solution_with_type_error(tmp_path):
     with pytest.raises(TypeError, match="cannot save"):
         ph.save("not a solution", tmp_path / "x.pt")
+
+
+def test_named_callable_terminal_cost_is_saved_by_name_and_must_be_passed_back(tmp_path, config):
+    system = user_system()
+    phi = CallableTerminalCost(lambda x: 0.5 * (x ** 2).sum(-1), name="half |x|^2")
+    torch.manual_seed(0)
+    model = FiniteHorizonValue(2, 1.0, system.train_domain, phi, width=config.width, depth=config.depth).float()
+    sol = FiniteHorizonSolution(system, config, [Stage(model, 0.0, TrainHistory(), seed=0)], phi.spec())
+    path = ph.save(sol, tmp_path / "named.pt")
+    with pytest.raises(CheckpointError, match="half \\|x\\|\\^2"):
+        ph.load(path, system=system)  # no silent phi = 0
+    with pytest.raises(CheckpointError, match="half"):
+        ph.load(path, system=system, terminal_cost=CallableTerminalCost(phi.fn, name="another"))
+    loaded = ph.load(path, system=system, terminal_cost=phi)
+    x = np.random.default_rng(0).uniform(-1, 1, (10, 2))
+    np.testing.assert_array_equal(loaded.value(x, 0.3), sol.value(x, 0.3))
+    with pytest.raises(CheckpointError, match="do not pass"):
+        ph.load(ph.save(untrained_solution(system, config), tmp_path / "plain.pt"), system=system, terminal_cost=phi)
