@@ -122,9 +122,22 @@ def artifacts_dir() -> Path:
     return DEFAULT_OUT
 
 
-def load_case(case: str, seed: int = 0, out: Path | None = None, device=None):
-    """The stored solution of a case (as the notebooks load it)."""
-    return load(checkpoint_path(out or artifacts_dir(), case, seed), device=device)
+_RETRAINED: set = set()
+
+
+def load_case(case: str, seed: int = 0, out: Path | None = None, device=None, retrain: bool = False):
+    """The stored solution of a case (as the notebooks load it).
+
+    ``retrain=True`` (a notebook's ``RETRAIN`` switch) first trains this case and seed again with the
+    default recipe, in place (checkpoint and results table, as ``reproduce --cases``), once per process.
+    """
+    if case not in {c.name for c in CASES}:
+        raise KeyError(f"unknown case {case!r}; known: {[c.name for c in CASES]}")
+    out = Path(out or artifacts_dir())
+    if retrain and (case, seed, out) not in _RETRAINED:
+        run(out=out, seeds=seed + 1, only=[case], first_seed=seed)
+        _RETRAINED.add((case, seed, out))
+    return load(checkpoint_path(out, case, seed), device=device)
 
 
 def stored_seeds(case: str, out: Path | None = None) -> list[int]:
@@ -253,8 +266,9 @@ def _stage_rows(case, system, sol, refs, x0_idx, mode: str) -> list[dict]:
 
 
 def run(out: Path = DEFAULT_OUT, seeds: int = 3, quick: bool = False, only: list[str] | None = None,
-        progress: bool = True) -> dict:
-    """Train and evaluate every case for ``seeds`` seeds; write checkpoints, references and the results table."""
+        progress: bool = True, first_seed: int = 0) -> dict:
+    """Train and evaluate every case for seeds ``first_seed .. seeds - 1``; write checkpoints, references and
+    the results table (rows of seeds and cases not run are kept)."""
     out = Path(out)
     mode = "quick" if quick else "full"
     start = time.perf_counter()
@@ -272,7 +286,7 @@ def run(out: Path = DEFAULT_OUT, seeds: int = 3, quick: bool = False, only: list
             for h in case.horizons:
                 refs[h] = _reference(case, system, h, t_pts, out, progress)
         x0_idx = _closed_loop_states(system, refs[INF].points, 11 if system.n == 2 else 5) if INF in refs else None
-        for seed in range(seeds):
+        for seed in range(first_seed, seeds):
             print(f"== {case.name} (seed {seed})", flush=True)
             path = checkpoint_path(out, case.name, seed)
             t0 = time.perf_counter()
@@ -312,12 +326,12 @@ def rewrite_tables(out: Path = DEFAULT_OUT) -> dict:
 
 
 def _merge(out: Path, records: list[dict]) -> list[dict]:
-    """Keep earlier results of cases not rerun now (a partial rerun with ``--cases`` updates its rows only)."""
+    """Keep earlier results of cases and seeds not rerun now (a partial rerun updates its own rows only)."""
     path = Path(out) / "results" / "reproduce.json"
     if not path.exists():
         return records
-    done = {r["case"] for r in records}
-    earlier = [r for r in json.loads(path.read_text()).get("records", []) if r["case"] not in done]
+    done = {(r["case"], r["seed"]) for r in records}
+    earlier = [r for r in json.loads(path.read_text()).get("records", []) if (r["case"], r["seed"]) not in done]
     order = {c.name: i for i, c in enumerate(CASES)}
     return sorted(earlier + records, key=lambda r: (order.get(r["case"], len(order)), r["seed"]))
 

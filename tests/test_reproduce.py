@@ -93,3 +93,26 @@ def test_tables_can_be_rewritten_from_records(quick_run):
     text = table.read_text()
     assert "The reference method, checked where V* is known (quartic_inf.npz" in text
     assert result["meta"]["reference_wall_time"] > 0 and result["meta"]["cases_wall_time"] > 0
+
+
+def test_rerunning_one_seed_keeps_the_other_seeds_rows(quick_run):
+    out, _ = quick_run
+    result = reproduce.run(out=out, seeds=2, first_seed=1, quick=True, only=["quartic_steady"], progress=False)
+    seeds = sorted(r["seed"] for r in result["records"] if r["case"] == "quartic_steady")
+    assert seeds == [0, 1]
+    assert any(r["case"] == "pendulum_extension" for r in result["records"])
+
+
+def test_load_case_retrains_in_place_once_when_asked(quick_run, monkeypatch):
+    out, _ = quick_run
+    calls = []
+    monkeypatch.setattr(reproduce, "run", lambda **kw: calls.append(kw))
+    monkeypatch.setattr(reproduce, "_RETRAINED", set())
+    reproduce.load_case("quartic_steady", out=out)
+    assert calls == []
+    for _ in range(2):
+        sol = reproduce.load_case("quartic_steady", seed=0, out=out, retrain=True)
+    assert calls == [dict(out=out, seeds=1, only=["quartic_steady"], first_seed=0)]
+    assert isinstance(sol, ph.SteadyStateSolution)
+    with pytest.raises(KeyError, match="unknown case"):
+        reproduce.load_case("nope", out=out)
