@@ -39,10 +39,8 @@ def time_steps(system, model, pool, batch: int, points_per_time: int | None, ste
         flow = pool.take(torch.randint(len(pool), (batch,), generator=gen))
         if points_per_time is None:
             return flow, torch.rand(batch, generator=gen) * T, None, None
-        k = -(-batch // points_per_time)
-        times = torch.rand(k, generator=gen) * T
-        index = torch.arange(batch) % k
-        return flow, times[index], None, None, (times, index)
+        t, shared = training._shared_times(gen, batch, points_per_time, T, torch.float32, "cpu")
+        return flow, t, None, None, shared
 
     def step():
         opt.zero_grad(set_to_none=True)

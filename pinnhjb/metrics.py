@@ -122,9 +122,11 @@ class ClosedLoopResult:
         return float(np.mean(self.stabilized))
 
 
-def closed_loop(system, policy: Callable[[Tensor], Tensor], x0, t_final: float = 20.0, dt: float = 0.01,
-                tol: float = 1e-3) -> ClosedLoopResult:
+def closed_loop(system, policy: Callable[..., Tensor], x0, t_final: float = 20.0, dt: float = 0.01,
+                tol: float = 1e-3, time_varying: bool = False) -> ClosedLoopResult:
     """Integrate xdot = f(x) + g(x) policy(x) and dJ/dt = Q(x) + u'Ru with classical RK4 (batched in torch).
+
+    ``time_varying=True`` calls ``policy(x, t)`` instead (e.g. a finite-horizon mu_T(x, t) along its horizon).
 
     ``x0``: (N, n) tensor or array of initial states. The running cost is integrated with the state, so
     ``cost`` approximates J(policy; x0) of eq. (2) truncated at ``t_final`` (choose it long enough for the
@@ -135,24 +137,25 @@ def closed_loop(system, policy: Callable[[Tensor], Tensor], x0, t_final: float =
         raise ValueError(f"t_final and dt must be positive; got t_final={t_final}, dt={dt}")
     steps = int(round(t_final / dt))
 
-    def rhs(z):
+    def rhs(z, t):
         xs = z[:, :-1]
-        u = policy(xs).to(torch.float64)
+        u = (policy(xs, t) if time_varying else policy(xs)).to(torch.float64)
         return torch.cat([system.dynamics(xs, u), system.running_cost(xs, u).unsqueeze(-1)], dim=-1), u
 
     z = torch.cat([x, torch.zeros(x.shape[0], 1, dtype=x.dtype)], dim=-1)
     xs, us = [x.clone()], []
-    for _ in range(steps):
-        k1, u = rhs(z)
-        k2, _ = rhs(z + 0.5 * dt * k1)
-        k3, _ = rhs(z + 0.5 * dt * k2)
-        k4, _ = rhs(z + dt * k3)
+    for k in range(steps):
+        t = k * dt
+        k1, u = rhs(z, t)
+        k2, _ = rhs(z + 0.5 * dt * k1, t + 0.5 * dt)
+        k3, _ = rhs(z + 0.5 * dt * k2, t + 0.5 * dt)
+        k4, _ = rhs(z + dt * k3, t + dt)
         z = z + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
         if not torch.all(torch.isfinite(z)):
             z = torch.where(torch.isfinite(z), z, torch.full_like(z, float("inf")))
         xs.append(z[:, :-1].clone())
         us.append(u)
-    us.append(rhs(z)[1])
+    us.append(rhs(z, steps * dt)[1])
     xt = torch.stack(xs).numpy()
     final = np.linalg.norm(xt[-1], axis=-1)
     return ClosedLoopResult(t=np.linspace(0.0, steps * dt, steps + 1), x=xt, u=torch.stack(us).numpy(),

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from .config import TrainConfig
+from .metrics import closed_loop
 from .pinn import CallableTerminalCost
 from .solution import FiniteHorizonSolution
 from .solver import FiniteHorizonSolver
@@ -94,22 +95,8 @@ def load(error: str, out: Path | None = None) -> FiniteHorizonSolution:
 
 
 def rollout(system, policy: Callable[[Tensor, float], Tensor], x0, t_final: float, dt: float = 0.01) -> np.ndarray:
-    """x(t_final) under a time-varying policy u = policy(x, t) (classical RK4, float64); shape (N, n)."""
-    x = torch.as_tensor(np.asarray(x0, dtype=float))
-    steps = int(round(t_final / dt))
-    h = t_final / steps
-
-    def rhs(z, t):
-        return system.dynamics(z, policy(z, t).to(z.dtype))
-
-    for k in range(steps):
-        t = k * h
-        k1 = rhs(x, t)
-        k2 = rhs(x + 0.5 * h * k1, t + 0.5 * h)
-        k3 = rhs(x + 0.5 * h * k2, t + 0.5 * h)
-        k4 = rhs(x + h * k3, min(t + h, t_final))
-        x = x + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return x.numpy()
+    """x(t_final) under a time-varying policy u = policy(x, t) (:func:`pinnhjb.metrics.closed_loop`); (N, n)."""
+    return closed_loop(system, policy, x0, t_final=t_final, dt=dt, time_varying=True).x[-1]
 
 
 def bound_check(sol: FiniteHorizonSolution, error: str, points_per_dim: int = 21, dt: float = 0.01) -> dict:

@@ -251,6 +251,15 @@ def _uniform(gen, size: int, scale: float, dtype, device) -> Tensor:
     return (scale * torch.rand(size, generator=gen, dtype=torch.float64)).to(dtype=dtype, device=device)
 
 
+def _shared_times(gen, size: int, points_per_time: int, T: float, dtype, device) -> tuple[Tensor, tuple]:
+    """``size`` collocation times in [0, T] drawn as ceil(size / points_per_time) fresh times, each shared by
+    ``points_per_time`` points in turn: returns (t, (times, index)) with t = times[index]."""
+    k = -(-size // points_per_time)
+    times = _uniform(gen, k, T, dtype, device)
+    index = torch.arange(size, device=device) % k
+    return times[index], (times, index)
+
+
 def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig, seed: int = 0,
                          progress: bool = True, desc: str = "stage") -> TrainHistory:
     """Train ``model`` in place on the finite-horizon HJB over Omega x [0, model.horizon] (Algorithm 1)."""
@@ -273,10 +282,8 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
     def sample(size):
         flow = pool.take(_randint(gen, len(pool), size, device))
         if model.ansatz and config.points_per_time is not None and config.points_per_time > 1:
-            k = -(-size // config.points_per_time)
-            times = _uniform(gen, k, T, dtype, device)
-            index = torch.arange(size, device=device) % k
-            return flow, times[index], None, None, (times, index)
+            t, shared = _shared_times(gen, size, config.points_per_time, T, dtype, device)
+            return flow, t, None, None, shared
         t = _uniform(gen, size, T, dtype, device)
         if model.ansatz:
             return flow, t, None, None
