@@ -5,10 +5,11 @@
 * Quartic system on Omega = [-1.2, 1.2]^2: T = 0.5 extended to 4 in 0.5 s steps; E beside the paper's 1.536e-4
   and max |V_4(x,0) - V*(x)|, max |mu_4(x,0) - mu*(x)| on the 101 x 101 grid.
 
-Each recipe (``default`` = ours, ``paper`` = Section 6's, capped in wall time per stage) is trained in this
-one process, one after the other, so wall-time ratios are measured on the same machine in one run.
+Each recipe (``default`` = ours, Levenberg-Marquardt; ``adam_lbfgs`` = ours, first-order; ``paper`` = Section
+6's, capped in wall time per stage) is trained in this one process, one after the other, so wall-time ratios are
+measured on the same machine in one run.
 
-    python benchmarks/accuracy.py                       # both systems, both recipes
+    python benchmarks/accuracy.py                       # both systems, all three recipes
     python benchmarks/accuracy.py --recipes default     # ours only
     python benchmarks/accuracy.py --paper-stage-seconds 40
 
@@ -102,7 +103,7 @@ def write_tables(results: list[dict], meta: dict):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--systems", default="pendulum,quartic")
-    p.add_argument("--recipes", default="default,paper")
+    p.add_argument("--recipes", default="default,adam_lbfgs,paper")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--paper-stage-seconds", type=float, default=60.0,
                    help="wall-clock cap per stage for the paper recipe (its stop rule may never fire)")

@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--extend-to", type=float, default=None, help="extend the horizon to T' (Theorem 2)")
     t.add_argument("--step", type=float, default=None, help="extension increment (default: one increment)")
     t.add_argument("--steady-state", action="store_true", help="train the direct steady-state PINN instead")
-    t.add_argument("--preset", default="default", help="training recipe: default, paper, quick")
+    t.add_argument("--preset", default="default", help="training recipe: default, adam_lbfgs, paper, quick")
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TrainConfig field")
     t.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="system parameter, e.g. R=0.1")
     t.add_argument("--seed", type=int, default=0)

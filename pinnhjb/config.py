@@ -37,19 +37,26 @@ class TrainConfig:
     shared by ``points_per_time`` points of the batch, so the origin term N(0, t) is evaluated once per time
     (about half the cost of a step at 16); ``None`` gives every point its own time.
 
-    Optimiser: Adam for at most ``adam_steps`` steps from ``lr`` with ``schedule`` ``"cosine"`` (to
-    ``lr * lr_final_ratio``) or ``"inverse_time"`` (lr / (1 + lr_decay * k), the paper's); the paper's
-    stop rule (every mini-batch loss of an epoch below ``stop_loss``) when set; ``max_time`` caps wall
-    seconds per stage; then ``lbfgs_steps`` L-BFGS iterations on ``lbfgs_points`` fixed flow points.
+    Optimiser, in three phases any of which may be switched off (0 steps): Adam for at most ``adam_steps``
+    steps from ``lr`` with ``schedule`` ``"cosine"`` (to ``lr * lr_final_ratio``) or ``"inverse_time"``
+    (lr / (1 + lr_decay * k), the paper's); the paper's stop rule (every mini-batch loss of an epoch below
+    ``stop_loss``) when set; then ``lbfgs_steps`` L-BFGS iterations on ``lbfgs_points`` fixed flow points;
+    then ``lm_steps`` Levenberg-Marquardt iterations (:mod:`pinnhjb.gauss_newton`), each on ``lm_points``
+    fresh points, damping starting at ``lm_damping`` (ansatz only), stopping early once the loss has fallen by
+    less than the factor ``lm_min_progress`` over 30 iterations (None: never). ``max_time`` caps wall seconds
+    per stage.
     ``warm_start`` initialises each extension stage from the previous stage's weights.
+
+    Our default is a small network (3 x 24 tanh, float64) trained by Levenberg-Marquardt alone; the
+    ``adam_lbfgs`` preset is the first-order recipe we used before (3 x 100, float32, Adam then L-BFGS).
     ``eval_points_per_dim`` sets the grid over Omega on which E is reported after each stage.
     """
 
-    width: int = 100
+    width: int = 24
     depth: int = 3
     activation: str = "tanh"
     ansatz: bool = True
-    dtype: str = "float32"
+    dtype: str = "float64"
     sampling: str = "resample"
     batch_size: int = 2000
     pool_size: int = 40000
@@ -57,15 +64,19 @@ class TrainConfig:
     n_flow: int = 10000
     n_boundary: int = 1600
     n_origin: int = 1600
-    adam_steps: int = 2500
+    adam_steps: int = 0
     lr: float = 2e-3
     schedule: str = "cosine"
     lr_final_ratio: float = 0.01
     lr_decay: float = 0.0
     stop_loss: float | None = None
     max_time: float | None = None
-    lbfgs_steps: int = 800
+    lbfgs_steps: int = 0
     lbfgs_points: int = 4000
+    lm_steps: int = 100
+    lm_points: int = 2500
+    lm_damping: float = 1e-3
+    lm_min_progress: float | None = 2.0
     warm_start: bool = True
     eval_points_per_dim: int | None = None
     log_every: int = 25
@@ -74,7 +85,9 @@ class TrainConfig:
         checks = {
             "width": self.width >= 1, "depth": self.depth >= 1, "batch_size": self.batch_size >= 1,
             "pool_size": self.pool_size >= 1, "adam_steps": self.adam_steps >= 0,
-            "lbfgs_steps": self.lbfgs_steps >= 0, "lr": self.lr > 0, "log_every": self.log_every >= 1,
+            "lbfgs_steps": self.lbfgs_steps >= 0, "lm_steps": self.lm_steps >= 0, "lm_points": self.lm_points >= 1,
+            "lm_damping": self.lm_damping > 0,
+            "lm_min_progress": self.lm_min_progress is None or self.lm_min_progress >= 1, "lr": self.lr > 0, "log_every": self.log_every >= 1,
             "lr_decay": self.lr_decay >= 0, "lbfgs_points": self.lbfgs_points >= 1,
             "n_flow": self.n_flow >= 1, "n_boundary": self.n_boundary >= 1, "n_origin": self.n_origin >= 1,
             "lr_final_ratio": 0 <= self.lr_final_ratio <= 1,
@@ -90,12 +103,15 @@ class TrainConfig:
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"invalid TrainConfig field(s) {bad}: " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad))
+        if self.lm_steps > 0 and not self.ansatz:
+            raise ValueError("lm_steps > 0 needs ansatz=True (Levenberg-Marquardt minimises the flow residual only)")
         if self.sampling == "fixed" and self.n_flow < self.batch_size:
             raise ValueError(f"n_flow={self.n_flow} must be at least batch_size={self.batch_size}")
 
     @classmethod
     def preset(cls, name: str = "default", system: str | None = None, **overrides) -> "TrainConfig":
-        """``default`` (ours), ``paper`` (Section 6, needs ``system``), or ``quick`` (tests, smoke runs)."""
+        """``default`` (ours), ``adam_lbfgs`` (ours, first-order), ``paper`` (Section 6, needs ``system``), or
+        ``quick`` (tests, smoke runs)."""
         if name not in PRESETS:
             raise KeyError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
         base = dict(PRESETS[name])
@@ -121,14 +137,20 @@ class TrainConfig:
         return cls(**d)
 
 
+# What the first-order recipes share and the default does not have.
+_FIRST_ORDER = dict(width=100, dtype="float32", lm_steps=0)
+
 PRESETS: dict[str, dict] = {
-    # Ours: hard constraints, fresh points every step, cosine Adam, L-BFGS polish, warm-started extension.
+    # Ours: hard constraints, a 3 x 24 network in float64, Levenberg-Marquardt on fresh points, warm-started
+    # extension.
     "default": dict(),
+    # Ours before: hard constraints, 3 x 100 in float32, fresh points every step, cosine Adam, L-BFGS polish.
+    "adam_lbfgs": dict(_FIRST_ORDER, adam_steps=2500, lbfgs_steps=800),
     # Section 6: soft loss MSE_e + MSE_b + MSE_in, fixed data, Adam with inverse-time decay per
     # mini-batch of 500, stop when every mini-batch loss is below the threshold; capped by steps/time.
-    "paper": dict(ansatz=False, sampling="fixed", batch_size=500, schedule="inverse_time", adam_steps=20000,
+    "paper": dict(_FIRST_ORDER, ansatz=False, sampling="fixed", batch_size=500, schedule="inverse_time", adam_steps=20000,
                   lbfgs_steps=0, warm_start=False, max_time=600.0),
     # A few seconds per stage: for tests and smoke runs, not for accuracy.
-    "quick": dict(width=32, depth=2, batch_size=256, pool_size=4096, adam_steps=150, lr=5e-3, lbfgs_steps=20,
+    "quick": dict(_FIRST_ORDER, width=32, depth=2, batch_size=256, pool_size=4096, adam_steps=150, lr=5e-3, lbfgs_steps=20,
                   lbfgs_points=512, eval_points_per_dim=21),
 }

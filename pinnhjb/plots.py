@@ -134,14 +134,15 @@ def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: st
 
 
 def loss_curve(history, title: str = ""):
-    """Training loss against step (Adam, then L-BFGS) on a log scale."""
+    """Training loss against step (Adam, then L-BFGS, then Levenberg-Marquardt) on a log scale."""
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     steps, losses, phases = np.array(history.step), np.array(history.loss), np.array(history.phase)
-    for phase in ("adam", "lbfgs"):
+    labels = {"adam": "Adam", "lbfgs": "L-BFGS", "lm": "Levenberg-Marquardt"}
+    for phase, label in labels.items():
         m = phases == phase
         if m.any():
-            ax.semilogy(steps[m], losses[m], label=phase)
-    ax.set_xlabel("step (L-BFGS: function evaluations after Adam)")
+            ax.semilogy(steps[m], losses[m], label=label, marker="." if m.sum() < 60 else None)
+    ax.set_xlabel("step (L-BFGS: function evaluations; LM: iterations)")
     ax.set_ylabel("loss (MSE)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()

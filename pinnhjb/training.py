@@ -2,7 +2,8 @@
 
 The loss is the paper's eq. (MSE): MSE_e (flow residual F_e) + MSE_b (terminal residual F_b) + MSE_in
 (origin residual F_in); under the ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue` the last two are zero
-by construction and only MSE_e is minimised. f, g, Q and the terminal cost phi (with its gradient) are
+by construction and only MSE_e is minimised: by Adam and L-BFGS, or (our default) by Levenberg-Marquardt on the
+per-point residuals (:mod:`pinnhjb.gauss_newton`). f, g, Q and the terminal cost phi (with its gradient) are
 evaluated once per stage on a pool of states and then indexed, so a frozen chain of previous stages
 costs nothing per step.
 """
@@ -13,9 +14,12 @@ import time
 from dataclasses import dataclass, field
 
 import torch
+from torch import nn
+from torch.func import functional_call, grad
 from tqdm.auto import tqdm
 
 from .config import TrainConfig
+from .gauss_newton import FlatParameters, levenberg_marquardt
 from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
 
 Tensor = torch.Tensor
@@ -37,7 +41,8 @@ def resolve_device(device=None) -> torch.device:
 
 @dataclass
 class TrainHistory:
-    """Loss and wall time along training; ``stop_reason`` says why Adam stopped."""
+    """Loss and wall time along training; ``stop_reason`` says why training stopped (Adam's reason, or the
+    Levenberg-Marquardt phase's when there was no Adam or it ran out of time)."""
 
     step: list = field(default_factory=list)
     loss: list = field(default_factory=list)
@@ -134,6 +139,47 @@ def _steady_state_loss(system, model: SteadyStateValue, flow: dict) -> Tensor:
     return loss
 
 
+class _Correction(nn.Module):
+    """``model.correction`` as a module's forward, so :func:`torch.func.functional_call` can swap its weights."""
+
+    def __init__(self, model: FiniteHorizonValue):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x: Tensor, t: Tensor) -> Tensor:
+        return self.model.correction(x, t)
+
+
+def _finite_horizon_point_residual(system, model: FiniteHorizonValue, flat: FlatParameters):
+    """F_e(x, t) of one point as a function of the flat weights theta (for Levenberg-Marquardt, ansatz only).
+
+    The point's data are (x, t, grad phi(x), f(x), g(x), Q(x)), the cached terminal gradient included, so a
+    frozen chain of previous stages is not re-evaluated."""
+    wrapper = _Correction(model)
+
+    def correction(theta, x, t):
+        return functional_call(wrapper, flat.unflatten(theta, "model.net."), (x.unsqueeze(0), t.reshape(1)))[0]
+
+    def residual(theta, x, t, dphi, fx, gx, qx):
+        gxc, gtc = grad(correction, argnums=(1, 2))(theta, x, t)
+        return gtc + system.hamiltonian_min(x[None], (gxc + dphi)[None], fx[None], gx[None], qx[None])[0]
+
+    return residual
+
+
+def _steady_state_point_residual(system, model: SteadyStateValue, flat: FlatParameters):
+    """E_e(x) of eq. (flow_res) for one point as a function of the flat weights (ansatz only)."""
+
+    def value(theta, x):
+        return functional_call(model, flat.unflatten(theta, "net."), (x.unsqueeze(0),))[0]
+
+    def residual(theta, x, fx, gx, qx):
+        gv = grad(value, argnums=1)(theta, x)
+        return system.hamiltonian_min(x[None], gv[None], fx[None], gx[None], qx[None])[0]
+
+    return residual
+
+
 # ---------------------------------------------------------------------- the optimisation loop
 
 def _lr_factor(config: TrainConfig):
@@ -146,18 +192,21 @@ def _lr_factor(config: TrainConfig):
     return lambda k: 1.0
 
 
-def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str, progress: bool) -> TrainHistory:
-    """Adam (resampled batches, or epochs of fixed mini-batches with the paper's stop rule), then L-BFGS.
+def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str, progress: bool,
+              lm=None) -> TrainHistory:
+    """Adam (resampled batches, or epochs of fixed mini-batches with the paper's stop rule), then L-BFGS, then
+    Levenberg-Marquardt.
 
-    ``sample(size)`` returns a fresh batch; ``epochs()`` yields lists of mini-batches (fixed data).
+    ``sample(size)`` returns a fresh batch; ``epochs()`` yields lists of mini-batches (fixed data);
+    ``lm = (flat, point_residual, lm_sample)`` for the Levenberg-Marquardt phase (see :mod:`.gauss_newton`).
     """
     params = list(params)
     hist = TrainHistory()
     start = time.perf_counter()
     opt = torch.optim.Adam(params, lr=config.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(config))
-    bar = tqdm(total=config.adam_steps + config.lbfgs_steps, desc=desc, disable=not progress, leave=False,
-               dynamic_ncols=True)
+    bar = tqdm(total=config.adam_steps + config.lbfgs_steps + config.lm_steps, desc=desc, disable=not progress,
+               leave=False, dynamic_ncols=True)
     step = 0
     last = float("nan")
 
@@ -233,8 +282,29 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         hist.final_loss = final.item()
     else:
         hist.final_loss = last
+    iterations = 0
+    if config.lm_steps > 0:
+        flat, point_residual, lm_sample = lm
+        done = step + evals
+
+        def on_step(k, loss, damping):
+            if k % config.log_every == 0 or k == 1:
+                hist.record(done + k, loss, time.perf_counter() - start, "lm")
+                bar.set_postfix(loss=f"{loss:.3e}", refresh=False)
+            bar.update(1)
+
+        left = None if config.max_time is None else config.max_time - (time.perf_counter() - start)
+        if left is None or left > 0:
+            result = levenberg_marquardt(flat.get(), point_residual, lm_sample, config.lm_steps, config.lm_points,
+                                         damping=config.lm_damping, max_time=left, on_step=on_step,
+                                         min_progress=config.lm_min_progress, desc=desc)
+            flat.set(result.theta)
+            iterations = result.steps
+            hist.final_loss = result.loss
+            if config.adam_steps == 0 or result.stop_reason == "max_time":
+                hist.stop_reason = result.stop_reason
     hist.wall_time = time.perf_counter() - start
-    hist.record(step + evals, hist.final_loss, hist.wall_time, "final")
+    hist.record(step + evals + iterations, hist.final_loss, hist.wall_time, "final")
     bar.close()
     return hist
 
@@ -307,8 +377,16 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
                 io = perm_o[b::n_batches]
                 yield pool.take(idx), t_flow[idx], bnd.take(ib), t_origin[io]
 
+    lm = None
+    if config.lm_steps > 0:
+        def lm_sample(size):
+            flow = pool.take(_randint(gen, len(pool), size, device))
+            return (flow["x"], _uniform(gen, size, T, dtype, device), flow["dphi"], flow["fx"], flow["gx"], flow["qx"])
+
+        flat = FlatParameters(model.net)
+        lm = (flat, _finite_horizon_point_residual(system, model, flat), lm_sample)
     params = [q for q in model.net.parameters()]
-    return _optimize(params, batch_loss, sample, epochs, config, desc, progress)
+    return _optimize(params, batch_loss, sample, epochs, config, desc, progress, lm)
 
 
 def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, seed: int = 0,
@@ -328,6 +406,14 @@ def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, see
         for b in range(max(1, len(pool) // config.batch_size)):
             yield pool.take(perm[b * config.batch_size:(b + 1) * config.batch_size])
 
+    lm = None
+    if config.lm_steps > 0:
+        def lm_sample(size):
+            flow = sample(size)
+            return flow["x"], flow["fx"], flow["gx"], flow["qx"]
+
+        flat = FlatParameters(model.net)
+        lm = (flat, _steady_state_point_residual(system, model, flat), lm_sample)
     return _optimize(model.net.parameters(), lambda batch: _steady_state_loss(system, model, batch), sample,
-                     epochs, config, desc, progress)
+                     epochs, config, desc, progress, lm)
 

@@ -1,0 +1,128 @@
+"""Levenberg-Marquardt (damped Gauss-Newton) on a PINN's residuals: the optimiser of our default recipe.
+
+The loss of Algorithm 1 under the ansatz is a mean of squared residuals, mean_i F_e(x_i, t_i; theta)^2, so its
+Gauss-Newton model needs only the Jacobian J (N x P) of the residual vector in the weights. Each iteration
+draws fresh collocation points, forms J with ``torch.func`` (``jacrev`` of one point's residual, ``vmap``-ed
+over the points: the residual itself holds first derivatives of the network, so J holds mixed second
+derivatives, all by autograd), and solves
+
+    (J'J + lambda I) delta = -J'r          (or, when N < P, delta = -J'(JJ' + lambda I)^{-1} r, the same step)
+
+by Cholesky. The step is kept when it lowers the loss on the same points, and lambda shrinks; otherwise
+lambda grows and the step is retried (Levenberg's rule). For small networks (about 10^3 weights) an
+iteration costs about as much as a few dozen Adam steps and does far more: see ``benchmarks/``.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import nn
+from torch.func import jacrev, vmap
+
+Tensor = torch.Tensor
+
+__all__ = ["FlatParameters", "levenberg_marquardt", "LMResult"]
+
+
+class FlatParameters:
+    """A module's weights as one flat vector ``theta``, and the module as a function of ``theta``."""
+
+    def __init__(self, module: nn.Module):
+        self.module = module
+        named = list(module.named_parameters())
+        self.names = [k for k, _ in named]
+        self.shapes = [p.shape for _, p in named]
+        self.sizes = [p.numel() for _, p in named]
+
+    def get(self) -> Tensor:
+        return torch.cat([p.detach().reshape(-1) for p in self.module.parameters()])
+
+    def set(self, theta: Tensor) -> None:
+        with torch.no_grad():
+            for p, chunk in zip(self.module.parameters(), torch.split(theta, self.sizes)):
+                p.copy_(chunk.view(p.shape))
+
+    def unflatten(self, theta: Tensor, prefix: str = "") -> dict:
+        """``theta`` as a parameter dict for :func:`torch.func.functional_call` (names under ``prefix``)."""
+        return {prefix + k: c.view(s) for k, s, c in zip(self.names, self.shapes, torch.split(theta, self.sizes))}
+
+
+@dataclass
+class LMResult:
+    theta: Tensor
+    loss: float
+    damping: float
+    steps: int
+    rejected: int
+    stop_reason: str
+
+
+def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sample: Callable[[int], tuple],
+                        steps: int, points: int, damping: float = 1e-3, max_time: float | None = None,
+                        on_step: Callable[[int, float, float], None] | None = None, max_retries: int = 12,
+                        min_progress: float | None = None, window: int = 10, desc: str = "LM") -> LMResult:
+    """Minimise mean_i point_residual(theta, *batch_i)^2 over fresh batches from ``sample(points)``.
+
+    ``point_residual(theta, *args)`` is one point's residual (a scalar) with ``args`` the point's data (the
+    batch from ``sample`` is a tuple of tensors whose first dimension indexes the points). ``on_step(k, loss,
+    damping)`` is called after each iteration. Stops after ``steps`` iterations, at ``max_time`` seconds, or,
+    with ``min_progress``, once the loss has stalled: the loss (geometric mean over a ``window`` of
+    iterations, the points being fresh each time) fell by less than the factor ``min_progress`` over the last
+    three windows.
+    """
+    if steps < 0 or points < 1 or not damping > 0:
+        raise ValueError(f"need steps >= 0, points >= 1, damping > 0; got {steps}, {points}, {damping}")
+    start = time.perf_counter()
+    theta = theta.detach().clone()
+    P = theta.numel()
+    lam = float(damping)
+    loss = float("nan")
+    rejected = done = 0
+    stop = "lm_steps"
+    log_losses: list[float] = []
+    window_means: list[float] = []
+    for _ in range(steps):
+        batch = sample(points)
+        dims = (None,) + (0,) * len(batch)
+        residuals = vmap(point_residual, in_dims=dims)
+        J = vmap(jacrev(point_residual), in_dims=dims)(theta, *batch)
+        r = residuals(theta, *batch)
+        loss = (r @ r).item() / r.numel()
+        if not torch.isfinite(J).all() or not torch.isfinite(r).all():
+            raise FloatingPointError(f"{desc}: residual or Jacobian became non-finite at iteration {done}")
+        dual = r.numel() < P  # solve in the smaller of the two spaces
+        G = J @ J.T if dual else J.T @ J
+        rhs = r if dual else J.T @ r
+        eye = torch.eye(G.shape[0], dtype=G.dtype, device=G.device)
+        for _ in range(max_retries):
+            chol, info = torch.linalg.cholesky_ex(G + lam * eye)
+            if info.item() == 0:
+                y = torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1)
+                delta = -(J.T @ y) if dual else -y
+                r_new = residuals(theta + delta, *batch)
+                new = (r_new @ r_new).item() / r.numel()
+                if new < loss:  # accept, trust the quadratic model more
+                    theta = theta + delta
+                    loss, lam = new, max(lam / 3.0, 1e-12)
+                    break
+            rejected += 1
+            lam *= 4.0
+        done += 1
+        if on_step is not None:
+            on_step(done, loss, lam)
+        if max_time is not None and time.perf_counter() - start > max_time:
+            stop = "max_time"
+            break
+        if min_progress is not None:
+            log_losses.append(math.log(max(loss, 1e-300)))
+            if len(log_losses) == window:
+                window_means.append(sum(log_losses) / window)
+                log_losses.clear()
+                if len(window_means) > 3 and window_means[-4] - window_means[-1] < math.log(min_progress):
+                    stop = "stalled"
+                    break
+    return LMResult(theta=theta, loss=loss, damping=lam, steps=done, rejected=rejected, stop_reason=stop)

@@ -1,0 +1,129 @@
+"""Levenberg-Marquardt (pinnhjb.gauss_newton) and the default recipe that uses it."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import pinnhjb as ph
+from pinnhjb.gauss_newton import FlatParameters, levenberg_marquardt
+
+TINY_LM = dict(width=8, depth=2, lm_steps=12, lm_points=200, eval_points_per_dim=11, pool_size=2000)
+
+
+def _linear_problem(n_points: int, n_params: int, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    A = torch.randn(n_points, n_params, generator=gen, dtype=torch.float64)
+    b = torch.randn(n_points, generator=gen, dtype=torch.float64)
+
+    def point_residual(theta, a, bi):
+        return a @ theta - bi
+
+    return A, b, point_residual, (lambda size: (A, b))
+
+
+@pytest.mark.parametrize("n_points, n_params", [(40, 10), (10, 40)])
+def test_linear_least_squares_reaches_the_minimum_norm_solution(n_points, n_params):
+    """On a linear problem one undamped Gauss-Newton step is the least-squares solution; both the primal
+    (N > P) and the dual (N < P) solves must get there."""
+    A, b, point_residual, sample = _linear_problem(n_points, n_params)
+    theta0 = torch.zeros(n_params, dtype=torch.float64)
+    res = levenberg_marquardt(theta0, point_residual, sample, steps=30, points=n_points, damping=1e-8)
+    expected = torch.linalg.lstsq(A, b, driver="gelsd").solution
+    if n_points > n_params:
+        assert torch.allclose(res.theta, expected, atol=1e-6)
+    else:  # interpolation: the residual vanishes
+        assert res.loss < 1e-12
+        assert torch.allclose(A @ res.theta, b, atol=1e-6)
+    assert res.steps <= 30 and res.stop_reason in ("lm_steps", "stalled")
+
+
+def test_rejected_steps_raise_the_damping_and_never_raise_the_loss():
+    """A nonlinear residual (Rosenbrock as least squares): every accepted step lowers the loss on its batch."""
+    def point_residual(theta, w, c):
+        return w[0] * (theta[1] - theta[0] ** 2) * c + w[1] * (1 - theta[0])
+
+    W = torch.tensor([[10.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    C = torch.ones(2, dtype=torch.float64)
+    losses = []
+    res = levenberg_marquardt(torch.tensor([-1.2, 1.0], dtype=torch.float64), point_residual, lambda n: (W, C),
+                              steps=60, points=2, damping=1.0, on_step=lambda k, loss, lam: losses.append(loss))
+    assert all(b <= a for a, b in zip(losses, losses[1:]))
+    assert torch.allclose(res.theta, torch.ones(2, dtype=torch.float64), atol=1e-6)
+
+
+def test_stall_rule_stops_a_run_that_makes_no_progress():
+    A, b, point_residual, sample = _linear_problem(40, 10)
+    exact = torch.linalg.lstsq(A, b).solution
+    res = levenberg_marquardt(exact, point_residual, sample, steps=500, points=40, min_progress=2.0, window=5)
+    assert res.stop_reason == "stalled" and res.steps == 20  # four windows of five, no progress after the first
+    full = levenberg_marquardt(exact, point_residual, sample, steps=25, points=40)
+    assert full.steps == 25 and full.stop_reason == "lm_steps"
+
+
+def test_bad_arguments_and_non_finite_residuals_are_refused():
+    A, b, point_residual, sample = _linear_problem(5, 3)
+    theta = torch.zeros(3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="damping"):
+        levenberg_marquardt(theta, point_residual, sample, steps=3, points=5, damping=0.0)
+    bad = (A, torch.full_like(b, float("nan")))
+    with pytest.raises(FloatingPointError, match="non-finite"):
+        levenberg_marquardt(theta, point_residual, lambda n: bad, steps=3, points=5)
+
+
+def test_flat_parameters_round_trip():
+    net = ph.pinn.MLP(3, 5, 2)
+    flat = FlatParameters(net)
+    theta = flat.get()
+    assert theta.numel() == sum(p.numel() for p in net.parameters())
+    flat.set(theta * 0 + 0.5)
+    assert all(torch.all(p == 0.5) for p in net.parameters())
+    assert set(flat.unflatten(theta, "net.")) == {"net." + k for k, _ in net.named_parameters()}
+
+
+def test_default_recipe_is_levenberg_marquardt_and_refuses_the_soft_loss():
+    cfg = ph.TrainConfig()
+    assert cfg == ph.TrainConfig.preset("default")
+    assert cfg.lm_steps > 0 and cfg.adam_steps == 0 and cfg.ansatz and cfg.dtype == "float64"
+    assert ph.TrainConfig.preset("adam_lbfgs").lm_steps == 0
+    assert ph.TrainConfig.preset("paper", system="pendulum").lm_steps == 0
+    with pytest.raises(ValueError, match="ansatz"):
+        ph.TrainConfig(ansatz=False)
+    with pytest.raises(ValueError, match="lm_min_progress"):
+        ph.TrainConfig(lm_min_progress=0.5)
+
+
+def test_a_levenberg_marquardt_stage_beats_adam_on_the_same_network():
+    """Same tiny network, same seed: a dozen LM iterations leave a far smaller residual than 150 Adam steps."""
+    pendulum = ph.systems.pendulum()
+    lm = ph.FiniteHorizonSolver(pendulum, ph.TrainConfig(**TINY_LM), seed=0, device="cpu", progress=False).solve(1.0)
+    adam_cfg = ph.TrainConfig(**{**TINY_LM, "lm_steps": 0, "adam_steps": 150, "lr": 5e-3, "batch_size": 200})
+    adam = ph.FiniteHorizonSolver(pendulum, adam_cfg, seed=0, device="cpu", progress=False).solve(1.0)
+    h = lm.stages[0].history
+    assert "lm" in h.phase and h.loss[-1] < 0.05 * h.loss[0]
+    assert lm.stages[0].history.final_loss < 0.1 * adam.stages[0].history.final_loss
+    assert torch.isfinite(torch.tensor(lm.metrics["E"]))
+
+
+def test_levenberg_marquardt_is_deterministic_and_extends():
+    pendulum = ph.systems.pendulum()
+    runs = []
+    for _ in range(2):
+        solver = ph.FiniteHorizonSolver(pendulum, ph.TrainConfig(**TINY_LM), seed=3, device="cpu", progress=False)
+        runs.append(solver.extend(solver.solve(0.5), to=1.0))
+    a, b = (r.stages[-1].model.net.state_dict() for r in runs)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert runs[0].horizon == 1.0 and len(runs[0].stages) == 2
+
+
+def test_steady_state_baseline_trains_with_levenberg_marquardt():
+    sol = ph.SteadyStateSolver(ph.systems.pendulum(), ph.TrainConfig(**TINY_LM), seed=0, device="cpu",
+                               progress=False).solve()
+    h = sol.history
+    assert "lm" in h.phase and h.final_loss < 0.25 * h.loss[0]
+
+
+def test_max_time_stops_the_levenberg_marquardt_phase():
+    cfg = ph.TrainConfig(**{**TINY_LM, "lm_steps": 10_000, "max_time": 0.5, "lm_min_progress": None})
+    sol = ph.FiniteHorizonSolver(ph.systems.pendulum(), cfg, seed=0, device="cpu", progress=False).solve(1.0)
+    assert sol.stages[0].history.stop_reason == "max_time"
+    assert sol.stages[0].history.step[-1] < 10_000
