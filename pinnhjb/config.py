@@ -134,7 +134,8 @@ class TrainConfig:
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"unknown TrainConfig field(s) {sorted(unknown)}")
-        return cls(**d)
+        # A config stored before the Levenberg-Marquardt phase existed was trained without it.
+        return cls(**{"lm_steps": 0, **d})
 
 
 # What the first-order recipes share and the default does not have.

@@ -92,6 +92,15 @@ def test_default_recipe_is_levenberg_marquardt_and_refuses_the_soft_loss():
         ph.TrainConfig(lm_min_progress=0.5)
 
 
+def test_a_config_stored_before_levenberg_marquardt_loads_without_it():
+    old = ph.TrainConfig.preset("paper", system="pendulum").to_dict()
+    for key in ("lm_steps", "lm_points", "lm_damping", "lm_min_progress"):
+        old.pop(key)
+    cfg = ph.TrainConfig.from_dict(old)
+    assert cfg.lm_steps == 0 and not cfg.ansatz
+    assert ph.TrainConfig.from_dict(ph.TrainConfig().to_dict()) == ph.TrainConfig()
+
+
 def test_a_levenberg_marquardt_stage_beats_adam_on_the_same_network():
     """Same tiny network, same seed: a dozen LM iterations leave a far smaller residual than 150 Adam steps."""
     pendulum = ph.systems.pendulum()
