@@ -46,10 +46,11 @@ class TrainConfig:
     less than the factor ``lm_min_progress`` over 30 iterations (None: never). ``max_time`` caps wall seconds
     per stage.
     ``warm_start`` initialises each extension stage from the previous stage's weights.
-
-    Our default is a small network (3 x 24 tanh, float64) trained by Levenberg-Marquardt alone; the
-    ``adam_lbfgs`` preset is the first-order recipe we used before (3 x 100, float32, Adam then L-BFGS).
     ``eval_points_per_dim`` sets the grid over Omega on which E is reported after each stage.
+
+    Our default is a small network (3 x 24 tanh, float64) trained by Levenberg-Marquardt alone (its cost per
+    iteration grows with the square of the number of weights: keep the network small); the ``adam_lbfgs``
+    preset is the first-order recipe we used before (3 x 100, float32, Adam then L-BFGS).
     """
 
     width: int = 24
@@ -85,9 +86,9 @@ class TrainConfig:
         checks = {
             "width": self.width >= 1, "depth": self.depth >= 1, "batch_size": self.batch_size >= 1,
             "pool_size": self.pool_size >= 1, "adam_steps": self.adam_steps >= 0,
-            "lbfgs_steps": self.lbfgs_steps >= 0, "lm_steps": self.lm_steps >= 0, "lm_points": self.lm_points >= 1,
-            "lm_damping": self.lm_damping > 0,
-            "lm_min_progress": self.lm_min_progress is None or self.lm_min_progress >= 1, "lr": self.lr > 0, "log_every": self.log_every >= 1,
+            "lbfgs_steps": self.lbfgs_steps >= 0, "lr": self.lr > 0, "log_every": self.log_every >= 1,
+            "lm_steps": self.lm_steps >= 0, "lm_points": self.lm_points >= 1, "lm_damping": self.lm_damping > 0,
+            "lm_min_progress": self.lm_min_progress is None or self.lm_min_progress >= 1,
             "lr_decay": self.lr_decay >= 0, "lbfgs_points": self.lbfgs_points >= 1,
             "n_flow": self.n_flow >= 1, "n_boundary": self.n_boundary >= 1, "n_origin": self.n_origin >= 1,
             "lr_final_ratio": 0 <= self.lr_final_ratio <= 1,
@@ -149,9 +150,9 @@ PRESETS: dict[str, dict] = {
     "adam_lbfgs": dict(_FIRST_ORDER, adam_steps=2500, lbfgs_steps=800),
     # Section 6: soft loss MSE_e + MSE_b + MSE_in, fixed data, Adam with inverse-time decay per
     # mini-batch of 500, stop when every mini-batch loss is below the threshold; capped by steps/time.
-    "paper": dict(_FIRST_ORDER, ansatz=False, sampling="fixed", batch_size=500, schedule="inverse_time", adam_steps=20000,
-                  lbfgs_steps=0, warm_start=False, max_time=600.0),
+    "paper": dict(_FIRST_ORDER, ansatz=False, sampling="fixed", batch_size=500, schedule="inverse_time",
+                  adam_steps=20000, lbfgs_steps=0, warm_start=False, max_time=600.0),
     # A few seconds per stage: for tests and smoke runs, not for accuracy.
-    "quick": dict(_FIRST_ORDER, width=32, depth=2, batch_size=256, pool_size=4096, adam_steps=150, lr=5e-3, lbfgs_steps=20,
-                  lbfgs_points=512, eval_points_per_dim=21),
+    "quick": dict(_FIRST_ORDER, width=32, depth=2, batch_size=256, pool_size=4096, adam_steps=150, lr=5e-3,
+                  lbfgs_steps=20, lbfgs_points=512, eval_points_per_dim=21),
 }

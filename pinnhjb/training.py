@@ -381,7 +381,8 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
     if config.lm_steps > 0:
         def lm_sample(size):
             flow = pool.take(_randint(gen, len(pool), size, device))
-            return (flow["x"], _uniform(gen, size, T, dtype, device), flow["dphi"], flow["fx"], flow["gx"], flow["qx"])
+            t = _uniform(gen, size, T, dtype, device)
+            return flow["x"], t, flow["dphi"], flow["fx"], flow["gx"], flow["qx"]
 
         flat = FlatParameters(model.net)
         lm = (flat, _finite_horizon_point_residual(system, model, flat), lm_sample)
