@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from . import lq
 from .pinn import gradient
 
 Tensor = torch.Tensor
@@ -164,12 +165,12 @@ def closed_loop(system, policy: Callable[..., Tensor], x0, t_final: float = 20.0
 
 def quadratic_fields(A, B, Q, R, P, x) -> dict:
     """Exact LQ counterparts of a learned solution's fields for V(x) = x'Px on ``x`` (N, n), numpy in and out:
-    ``value`` x'Px, ``policy`` -R^{-1} B'P x (N, m) and ``residual`` E_e(x; V) = 2 x'P A x + x'Qx - x'P B R^{-1} B'P x
-    (eq. (flow_res); zero for every solution of the algebraic Riccati equation)."""
-    A, B, Q, R, P = (np.atleast_2d(np.asarray(M, dtype=float)) for M in (A, B, Q, R, P))
+    ``value`` x'Px, ``policy`` -R^{-1} B'P x (N, m) (:func:`pinnhjb.lq.lqr_gain`) and ``residual``
+    E_e(x; V) = x' (A'P + PA + Q - P B R^{-1} B'P) x (eq. (flow_res), the ARE residual
+    :func:`pinnhjb.lq.are_residual` as a quadratic form; zero for every solution of the ARE)."""
     x = np.asarray(x, dtype=float)
-    Px = x @ P.T
-    u = -np.linalg.solve(R, B.T @ Px.T).T
-    quad = lambda M, y: np.einsum("ni,ij,nj->n", y, M, y)  # noqa: E731
-    residual = 2 * np.einsum("ni,ni->n", Px, x @ A.T) + quad(Q, x) - quad(np.linalg.solve(R.T, B.T).T @ B.T, Px)
-    return {"value": quad(P, x), "policy": u, "residual": residual}
+
+    def quad(M):
+        return np.einsum("ni,ij,nj->n", x, np.asarray(M, dtype=float), x)
+
+    return {"value": quad(P), "policy": -x @ lq.lqr_gain(B, R, P).T, "residual": quad(lq.are_residual(A, B, Q, R, P))}

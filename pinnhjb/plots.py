@@ -10,8 +10,8 @@ import math
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["grid_2d", "slice_mesh", "surfaces", "value_policy_residual", "value_policy_residual_slice",
-           "value_and_error", "policy_and_error", "loss_curve"]
+__all__ = ["grid_2d", "slice_mesh", "surfaces", "value_policy_residual", "value_and_error", "policy_and_error",
+           "loss_curve"]
 
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
@@ -21,9 +21,7 @@ def grid_2d(system, points_per_dim: int = 41):
     """Mesh over Omega of a 2-D system: (X1, X2, points (N, 2))."""
     if system.n != 2:
         raise ValueError(f"surface plots need a 2-D state; system '{system.name}' has n={system.n}")
-    (a, b), (c, d) = system.domain
-    x1, x2 = np.meshgrid(np.linspace(a, b, points_per_dim), np.linspace(c, d, points_per_dim), indexing="ij")
-    return x1, x2, np.stack([x1.ravel(), x2.ravel()], -1)
+    return slice_mesh(system, (0, 1), None, points_per_dim)
 
 
 def slice_mesh(system, axes: tuple[int, int] = (0, 1), fixed=None, points_per_dim: int = 31):
@@ -71,18 +69,12 @@ def _t_label(sol) -> str:
     return r"\infty" if T == math.inf else f"{T:g}"
 
 
-def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = ""):
-    """V(., 0), mu(., 0) and the squared flow residual E_e^2 (eq. (flow_res)): the paper's Figures 1-3."""
-    x1, x2, pts = grid_2d(sol.system, points_per_dim)
-    T = _t_label(sol)
-    v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2
-    return surfaces(x1, x2, [v, u, e], [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0)$",
-                                       rf"$E_e(x;\hat V_{{{T}}})^2$"], suptitle)
+def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = "", axes: tuple[int, int] = (0, 1),
+                          fixed=None):
+    """V(., 0), mu(., 0) and the squared flow residual E_e^2 (eq. (flow_res)): the paper's Figures 1-3.
 
-
-def value_policy_residual_slice(sol, axes: tuple[int, int] = (0, 1), fixed=None, points_per_dim: int = 31,
-                                suptitle: str = ""):
-    """:func:`value_policy_residual` on a plane through Omega (for n > 2), e.g. x3 = 0 of a 3-D system."""
+    Over Omega for a 2-D system; for n > 2 on the plane through Omega spanned by ``axes`` with the other
+    coordinates held at ``fixed`` (see :func:`slice_mesh`), e.g. x3 = 0 of a 3-D system."""
     x1, x2, pts = slice_mesh(sol.system, axes, fixed, points_per_dim)
     T = _t_label(sol)
     v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2

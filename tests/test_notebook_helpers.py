@@ -23,7 +23,7 @@ def test_slice_mesh_holds_the_other_coordinates():
 
 def test_value_policy_residual_slice_draws_three_panels():
     sol = ph.FiniteHorizonSolver(ph.systems.third_order(R=1.0), config="quick", seed=0, progress=False).solve(0.5)
-    fig = plots.value_policy_residual_slice(sol, fixed=0.0, points_per_dim=5)
+    fig = plots.value_policy_residual(sol, fixed=0.0, points_per_dim=5)
     assert len(fig.axes) == 3 and fig.axes[0].get_xlabel() == "$x_1$" and fig.axes[0].get_ylabel() == "$x_2$"
     plt.close(fig)
 
