@@ -1,0 +1,99 @@
+"""The speed benchmark's bookkeeping (benchmarks/speed.py), on made-up traces: which runs it plans, which run of a
+method counts as its best chain step, and the goal verdict. No training here: the benchmark itself is timed in
+``benchmarks/``, never in the test suite."""
+import importlib.util
+import os
+from pathlib import Path
+
+import pytest
+
+SPEED = Path(__file__).resolve().parents[1] / "benchmarks" / "speed.py"
+
+
+@pytest.fixture(scope="module")
+def speed():
+    before = os.environ.get("CUDA_VISIBLE_DEVICES")  # the script hides GPUs at import: undo that for the suite
+    spec = importlib.util.spec_from_file_location("speed_benchmark", SPEED)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    if before is None:
+        os.environ.pop("CUDA_VISIBLE_DEVICES", None)
+    else:
+        os.environ["CUDA_VISIBLE_DEVICES"] = before
+    return module
+
+
+def run(method, step, times, final_E=1e-5, train_time=None):
+    """A finished run in the summary's format. ``times``: training s to each of the paper final E, 1e-3,
+    1.5e-4 (None: not reached)."""
+    pf, t3, t4 = times
+    last = max([t for t in times if t is not None], default=10.0)
+    return {"status": "ok", "method": method, "step": step, "description": method, "setup_time": 0.0,
+            "train_time": train_time or last, "eval_time": 0.0,
+            "time_to": {"0.001": t3, "0.00015": t4}, "time_to_including_setup": {"0.001": t3, "0.00015": t4},
+            "time_to_paper_final_E": pf, "time_to_paper_final_E_including_setup": pf,
+            "final": {"E": final_E, "E_boundary": 0.0, "value_max_error": 1e-2, "policy_max_error": 1e-2}}
+
+
+def test_chain_lengths_divide_the_horizon(speed):
+    assert speed.chain_lengths(0.5) == [0.5] * 8
+    assert speed.chain_lengths(2.0) == [2.0, 2.0]
+    assert speed.chain_lengths(4.0) == [4.0]
+    for bad in (1.5, 3.0, 5.0):
+        with pytest.raises(ValueError, match="must divide"):
+            speed.chain_lengths(bad)
+
+
+def test_plan_runs_every_chain_method_once_per_step(speed):
+    plan = speed.variants(["deepxde", "default", "paper", "deepxde-chain-small"], [0.5, 2.0])
+    assert plan == [("paper", "paper", 0.5), ("default@0.5", "default", 0.5), ("default@2", "default", 2.0),
+                    ("deepxde", "deepxde", None), ("deepxde-chain-small@0.5", "deepxde-chain-small", 0.5),
+                    ("deepxde-chain-small@2", "deepxde-chain-small", 2.0)]
+    assert "one stage [0, 4]" in speed.describe("default", 4.0)
+    assert "chain 1 -> 4 in 1 s steps" in speed.describe("deepxde-chain", 1.0)
+
+
+def test_best_run_is_the_first_to_reach_the_target(speed):
+    methods = {"default@0.5": run("default", 0.5, (40.0, 40.0, 50.0)),
+               "default@2": run("default", 2.0, (20.0, 20.0, 20.0)),
+               "default@1": run("default", 1.0, (None, None, None), train_time=99.0)}
+    assert speed.best_run(methods, "default") == ("default@2", 20.0)
+    never = {"x@0.5": run("x", 0.5, (None,) * 3, train_time=5.0), "x@1": run("x", 1.0, (None,) * 3, train_time=9.0)}
+    assert speed.best_run(never, "x") == ("x@1", None)  # the longest run, and no time
+    assert speed.best_run(methods, "deepxde") == (None, None)
+
+
+def test_goal_compares_every_method_at_its_best_step(speed):
+    methods = {"paper": run("paper", 0.5, (240.0, 360.0, None), train_time=480.0),
+               "default@0.5": run("default", 0.5, (45.0, 45.0, 52.0)),
+               "default@2": run("default", 2.0, (21.0, 21.0, 21.0)),
+               "deepxde": run("deepxde", None, (None, None, None), train_time=316.0),
+               "deepxde-chain-small@0.5": run("deepxde-chain-small", 0.5, (47.0, 47.0, 63.0)),
+               "deepxde-chain-small@1": run("deepxde-chain-small", 1.0, (30.0, 30.0, 40.0)),
+               "deepxde-chain-small@2": run("deepxde-chain-small", 2.0, (None, None, None), train_time=18.0)}
+    lines = speed.goal_lines(methods, 1.4e-3)
+    text = "\n".join(lines)
+    assert "after 21.0 s of training (best: default@2)" in lines[0]
+    assert "- paper: 240.0 s (paper): speed-up 11.43 (met)." in text
+    assert "- deepxde: no run reached it (longest: deepxde, 316.0 s): speed-up > 15.05 (met)." in text
+    assert "- deepxde-chain-small: 30.0 s (deepxde-chain-small@1): speed-up 1.43 (not met)." in text
+    assert lines[-1] == "- Goal against the paper's recipe and every DeepXDE set-up run: not met."
+    # 5x against every competitor's best step: met
+    methods["deepxde-chain-small@1"] = run("deepxde-chain-small", 1.0, (110.0, 110.0, 120.0))
+    methods["deepxde-chain-small@0.5"] = run("deepxde-chain-small", 0.5, (None, None, None), train_time=200.0)
+    assert speed.goal_lines(methods, 1.4e-3)[-1].endswith(": met.")
+    # ours never gets there: not met, whatever the others did
+    for name in ("default@0.5", "default@2"):
+        methods[name] = run("default", methods[name]["step"], (None, None, None))
+    assert "goal not met" in speed.goal_lines(methods, 1.4e-3)[0]
+
+
+def test_best_step_table_gives_each_target_its_own_best_run(speed):
+    methods = {"default@0.5": run("default", 0.5, (45.0, 45.0, 52.0)),
+               "default@2": run("default", 2.0, (21.0, 21.0, 60.0)),
+               "deepxde-chain-small@1": run("deepxde-chain-small", 1.0, (30.0, 30.0, None))}
+    lines = speed.best_step_table(methods, 1.4e-3)
+    rows = {line.split(" | ")[0].strip("| "): line for line in lines if line.startswith("| ")}
+    assert "21.0 (default@2)" in rows["default"] and "52.0 (default@0.5)" in rows["default"]
+    assert "30.0 (deepxde-chain-small@1): 1.43x" in rows["deepxde-chain-small"]
+    assert "not reached" in rows["deepxde-chain-small"]
