@@ -35,6 +35,7 @@ CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-network
                   "--disable-default-apps", "--disable-extensions"]
 EXPLORER_MARK = 'class="pinnhjb-explorer"'
 WIDGET_VIEW_MARK = "application/vnd.jupyter.widget-view+json"
+WIDGET_STATE_MARK = "application/vnd.jupyter.widget-state+json"
 
 
 def _missing(reason: str):
@@ -220,6 +221,7 @@ def test_site_built_and_has_explorers():
         html = p.read_text(encoding="utf-8")
         ext = re.findall(r'<(?:script|link|img|iframe)[^>]+(?:src|href)="(https?://[^"]+)"', html)
         assert not ext, f"{p.relative_to(SITE)} loads assets from the network: {ext}"
+        assert WIDGET_STATE_MARK not in html, f"{p.relative_to(SITE)} embeds ipywidgets state that nothing reads"
 
 
 def test_pages_in_chromium(server, browser):
