@@ -223,7 +223,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         value = last = loss.item()
         if step % config.log_every == 0 or step == 1:
             hist.record(step, value, time.perf_counter() - start, "adam")
-            bar.set_postfix(loss=f"{value:.3e}", refresh=False)
+        bar.set_postfix(loss=f"{value:.3e}", refresh=False)  # shown at tqdm's own refresh rate
         bar.update(1)
         return value
 
@@ -267,7 +267,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
             evals += 1
             if evals % config.log_every == 0:
                 hist.record(step + evals, loss.item(), time.perf_counter() - start, "lbfgs")
-                bar.set_postfix(loss=f"{loss.item():.3e}", refresh=False)
+            bar.set_postfix(loss=f"{loss.item():.3e}", refresh=False)
             bar.update(1)
             return loss
 
@@ -290,7 +290,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         def on_step(k, loss, damping):
             if k % config.log_every == 0 or k == 1:
                 hist.record(done + k, loss, time.perf_counter() - start, "lm")
-                bar.set_postfix(loss=f"{loss:.3e}", refresh=False)
+            bar.set_postfix(loss=f"{loss:.3e}", refresh=False)
             bar.update(1)
 
         left = None if config.max_time is None else config.max_time - (time.perf_counter() - start)

@@ -86,6 +86,36 @@ def test_max_time_caps_adam(pendulum):
     assert sol.stages[0].history.step[-1] == 1
 
 
+class _RecordingBar:
+    """Stands in for tqdm: records every loss shown in the postfix and every update."""
+
+    def __init__(self, *args, **kwargs):
+        self.shown, self.n = [], 0
+
+    def set_postfix(self, loss, refresh=True):
+        self.shown.append(loss)
+
+    def update(self, k=1):
+        self.n += k
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("phase", ["adam", "lbfgs", "lm"])
+def test_progress_bar_shows_the_latest_loss(pendulum, monkeypatch, phase):
+    bars = []
+    monkeypatch.setattr("pinnhjb.training.tqdm", lambda *a, **k: bars.append(_RecordingBar()) or bars[-1])
+    steps = {"adam": dict(adam_steps=7), "lbfgs": dict(adam_steps=0, lbfgs_steps=7),
+             "lm": dict(adam_steps=0, lm_steps=7, lm_points=64, lm_min_progress=None)}[phase]
+    config = ph.TrainConfig.preset("quick", **{**FAST, "log_every": 5, "dtype": "float64", **steps})
+    sol = ph.FiniteHorizonSolver(pendulum, config, seed=0, device="cpu", progress=True).solve(0.5)
+    (bar,) = [b for b in bars if b.n]
+    assert len(bar.shown) == bar.n > 0  # every step updates the loss shown, not only every log_every
+    if phase != "lbfgs":  # (L-BFGS's final loss is re-evaluated after its last closure call)
+        assert bar.shown[-1] == f"{sol.stages[0].history.final_loss:.3e}"
+
+
 def test_metrics_are_attached_after_each_stage(base, chain):
     for key in ("E", "E_flow", "E_boundary", "E_zero"):
         assert math.isfinite(base.metrics[key])
