@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 __all__ = ["grid_2d", "slice_mesh", "surfaces", "value_policy_residual", "value_and_error", "policy_and_error",
-           "loss_curve"]
+           "loss_curve", "time_to_accuracy"]
 
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
@@ -138,6 +138,30 @@ def loss_curve(history, title: str = ""):
     ax.set_ylabel("loss (MSE)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def time_to_accuracy(traces: dict, targets: dict | None = None, title: str = ""):
+    """E (eq. (IHJB_res)) against training wall seconds, one line per run, checks marked.
+
+    ``traces``: label -> (seconds, E), e.g. from ``benchmarks/results/speed.json``; ``targets``: label -> an E
+    drawn as a dashed horizontal line."""
+    fig, ax = plt.subplots(figsize=(7.0, 4.0))
+    for label, (seconds, E) in traces.items():
+        seconds, E = np.asarray(seconds, dtype=float), np.asarray(E, dtype=float)
+        if seconds.shape != E.shape or seconds.ndim != 1:
+            raise ValueError(f"{label}: seconds and E must be 1-D of one length; got {seconds.shape}, {E.shape}")
+        ax.semilogy(seconds, E, marker="o", markersize=3, label=label)
+    for k, (label, value) in enumerate((targets or {}).items()):
+        ax.axhline(value, color="0.3", linestyle=("--", ":", "-.")[k % 3], linewidth=1, label=label)
+    ax.set_xscale("log")  # seconds to hundreds of seconds on one axis
+    ax.set_xlabel("training wall time (s)")
+    ax.set_ylabel("E (infinite-horizon residual)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")  # the first seconds: no run has finished a check there
     if title:
         ax.set_title(title)
     fig.tight_layout()

@@ -41,3 +41,14 @@ def test_quadratic_fields_are_exact():
     assert np.allclose(fields["value"], ode.value(x, 0.0))
     dP = ode.derivative(0.0)                                           # E_e(x; V_T(., 0)) = -dV_T/dt at t = 0
     assert np.allclose(fields["residual"], -np.einsum("ni,ij,nj->n", x, dP, x))
+
+
+def test_time_to_accuracy_draws_one_line_per_run_and_the_targets():
+    fig = plots.time_to_accuracy({"a": ([1.0, 5.0, 30.0], [1.0, 1e-2, 1e-5]), "b": ([8.0, 300.0], [0.5, 3e-2])},
+                                 targets={"paper": 1.5e-4})
+    ax = fig.axes[0]
+    assert ax.get_yscale() == "log" and [line.get_label() for line in ax.lines] == ["a", "b", "paper"]
+    assert list(ax.lines[0].get_ydata()) == [1.0, 1e-2, 1e-5] and ax.lines[2].get_ydata()[0] == 1.5e-4
+    plt.close(fig)
+    with pytest.raises(ValueError, match="one length"):
+        plots.time_to_accuracy({"bad": ([1.0, 2.0], [1.0])})
