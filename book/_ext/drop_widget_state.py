@@ -2,9 +2,10 @@
 
 A notebook executed with live widgets (the explorers of chapters 3, 4 and 6) stores every widget's state in its
 metadata, and MyST-NB copies that state into the page as a
-``<script type="application/vnd.jupyter.widget-state+json">`` (about 0.3 MB per page here). The static site shows each explorer's self-contained HTML slider instead of the
-widget view and loads no widget manager (see ``_config.yml``), so nothing reads that state: drop it before the
-page is written. Live notebooks keep their widgets.
+``<script type="application/vnd.jupyter.widget-state+json">`` (about 0.3 MB per page here). The static site
+shows each explorer's self-contained HTML slider instead of the widget view and loads no widget manager (see
+``_config.yml``), so nothing reads that state: drop it before the page is written. Live notebooks keep their
+widgets.
 """
 
 STATE_KEY = "ipywidgets_state"  # MyST-NB's key for the state script (myst_nb.core.render.render_nb_finalise)
