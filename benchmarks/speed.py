@@ -32,8 +32,9 @@ step, learning rate and cosine decay, then L-BFGS on its number of fixed points;
 network (3 x 250 for this system), data, optimiser and stop rule. E is eq. (IHJB_res), mean over a 101 x 101
 grid of Omega of E_e(x)^2 plus V(0)^2, computed for every method by the one function :func:`measure`
 (``pinnhjb.metrics``); E is checked after every stage of a chain and every ``--checkpoint-every`` Adam steps /
-``--lbfgs-checkpoint-every`` L-BFGS iterations of the one-stage run, with the training clock paused. Times to a target count training only; set-up (data, cached
-terminal costs, DeepXDE's data and ``compile``) is reported apart.
+``--lbfgs-checkpoint-every`` L-BFGS iterations of the one-stage run, with the training clock paused. Times to a
+target count training only; set-up (data, cached terminal costs, DeepXDE's data and ``compile``) is reported
+apart.
 
     benchmarks/.venv/bin/python benchmarks/speed.py                        # everything (DeepXDE's venv)
     .venv/bin/python benchmarks/speed.py --methods paper,default --steps 1 # without DeepXDE, 1 s chains
