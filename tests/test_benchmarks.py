@@ -92,7 +92,10 @@ def test_best_step_table_gives_each_target_its_own_best_run(speed):
     methods = {"default@0.5": run("default", 0.5, (45.0, 45.0, 52.0)),
                "default@2": run("default", 2.0, (21.0, 21.0, 60.0)),
                "deepxde-chain-small@1": run("deepxde-chain-small", 1.0, (30.0, 30.0, None))}
-    lines = speed.best_step_table(methods, 1.4e-3)
+    best = speed.best_steps(methods, 1.4e-3)
+    assert best["0.00015"]["default"] == {"run": "default@0.5", "time": 52.0}
+    assert best["0.00015"]["deepxde-chain-small"] == {"run": "deepxde-chain-small@1", "time": None}
+    lines = speed.best_step_table(best, 1.4e-3)
     rows = {line.split(" | ")[0].strip("| "): line for line in lines if line.startswith("| ")}
     assert "21.0 (default@2)" in rows["default"] and "52.0 (default@0.5)" in rows["default"]
     assert "30.0 (deepxde-chain-small@1): 1.43x" in rows["deepxde-chain-small"]
