@@ -41,16 +41,19 @@ class TrainConfig:
     steps from ``lr`` with ``schedule`` ``"cosine"`` (to ``lr * lr_final_ratio``) or ``"inverse_time"``
     (lr / (1 + lr_decay * k), the paper's); the paper's stop rule (every mini-batch loss of an epoch below
     ``stop_loss``) when set; then ``lbfgs_steps`` L-BFGS iterations on ``lbfgs_points`` fixed flow points;
-    then ``lm_steps`` Levenberg-Marquardt iterations (:mod:`pinnhjb.gauss_newton`), each on ``lm_points``
-    fresh points, damping starting at ``lm_damping`` (ansatz only), stopping early once the loss has fallen by
-    less than the factor ``lm_min_progress`` over 30 iterations (None: never). ``max_time`` caps wall seconds
-    per stage.
+    then at most ``lm_steps`` Levenberg-Marquardt iterations (:mod:`pinnhjb.gauss_newton`, ansatz only), damping
+    starting at ``lm_damping``, each on fresh points: ``lm_points_coarse`` of them (fewer than the weights: a
+    cheap step that stalls at a noise floor) until the loss stalls, then ``lm_points`` until it stalls again;
+    the loss has stalled when it fell by less than the factor ``lm_min_progress`` over the last
+    ``lm_stall_windows`` windows of 10 iterations (``lm_points_coarse=None``, or ``lm_min_progress=None`` (never
+    stall, run ``lm_steps``): ``lm_points`` throughout). ``max_time`` caps wall seconds per stage.
     ``warm_start`` initialises each extension stage from the previous stage's weights.
     ``eval_points_per_dim`` sets the grid over Omega on which E is reported after each stage.
 
-    Our default is a small network (3 x 24 tanh, float64) trained by Levenberg-Marquardt alone (its cost per
-    iteration grows with the square of the number of weights: keep the network small); the ``adam_lbfgs``
-    preset is the first-order recipe we used before (3 x 100, float32, Adam then L-BFGS).
+    Our default is a small network (3 x 24 tanh, float64, about 1300 weights) trained by Levenberg-Marquardt
+    alone on 700 then 1500 points per iteration (its cost per iteration grows with the square of the number of
+    weights: keep the network small); the ``adam_lbfgs`` preset is the first-order recipe we used before
+    (3 x 100, float32, Adam then L-BFGS).
     """
 
     width: int = 24
@@ -74,10 +77,12 @@ class TrainConfig:
     max_time: float | None = None
     lbfgs_steps: int = 0
     lbfgs_points: int = 4000
-    lm_steps: int = 100
-    lm_points: int = 2500
+    lm_steps: int = 300
+    lm_points: int = 1500
+    lm_points_coarse: int | None = 700
     lm_damping: float = 1e-3
     lm_min_progress: float | None = 2.0
+    lm_stall_windows: int = 2
     warm_start: bool = True
     eval_points_per_dim: int | None = None
     log_every: int = 25
@@ -89,6 +94,8 @@ class TrainConfig:
             "lbfgs_steps": self.lbfgs_steps >= 0, "lr": self.lr > 0, "log_every": self.log_every >= 1,
             "lm_steps": self.lm_steps >= 0, "lm_points": self.lm_points >= 1, "lm_damping": self.lm_damping > 0,
             "lm_min_progress": self.lm_min_progress is None or self.lm_min_progress >= 1,
+            "lm_points_coarse": self.lm_points_coarse is None or 1 <= self.lm_points_coarse < self.lm_points,
+            "lm_stall_windows": self.lm_stall_windows >= 1,
             "lr_decay": self.lr_decay >= 0, "lbfgs_points": self.lbfgs_points >= 1,
             "n_flow": self.n_flow >= 1, "n_boundary": self.n_boundary >= 1, "n_origin": self.n_origin >= 1,
             "lr_final_ratio": 0 <= self.lr_final_ratio <= 1,
@@ -135,8 +142,9 @@ class TrainConfig:
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"unknown TrainConfig field(s) {sorted(unknown)}")
-        # A config stored before the Levenberg-Marquardt phase existed was trained without it.
-        return cls(**{"lm_steps": 0, **d})
+        # A config stored before the Levenberg-Marquardt phase existed was trained without it; one stored before
+        # the point schedule was trained on lm_points throughout, with a stall span of three windows.
+        return cls(**{"lm_steps": 0, "lm_points_coarse": None, "lm_stall_windows": 3, **d})
 
 
 # What the first-order recipes share and the default does not have.

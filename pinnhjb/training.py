@@ -295,9 +295,13 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
 
         left = None if config.max_time is None else config.max_time - (time.perf_counter() - start)
         if left is None or left > 0:
-            result = levenberg_marquardt(flat.get(), point_residual, lm_sample, config.lm_steps, config.lm_points,
+            # the coarse level ends on a stall: without the stall rule, lm_points throughout
+            coarse = config.lm_points_coarse if config.lm_min_progress is not None else None
+            points = (config.lm_points,) if coarse is None else (coarse, config.lm_points)
+            result = levenberg_marquardt(flat.get(), point_residual, lm_sample, config.lm_steps, points,
                                          damping=config.lm_damping, max_time=left, on_step=on_step,
-                                         min_progress=config.lm_min_progress, desc=desc)
+                                         min_progress=config.lm_min_progress,
+                                         stall_windows=config.lm_stall_windows, desc=desc)
             flat.set(result.theta)
             iterations = result.steps
             hist.final_loss = result.loss

@@ -7,7 +7,9 @@ import torch
 import pinnhjb as ph
 from pinnhjb.gauss_newton import FlatParameters, levenberg_marquardt
 
-TINY_LM = dict(width=8, depth=2, lm_steps=12, lm_points=200, eval_points_per_dim=11, pool_size=2000)
+# 8 x 2 on (x, t): 113 weights; the coarse level's 60 points are fewer (the dual solve), lm_points more
+TINY_LM = dict(width=8, depth=2, lm_steps=12, lm_points=200, lm_points_coarse=60, eval_points_per_dim=11,
+               pool_size=2000)
 
 
 def _linear_problem(n_points: int, n_params: int, seed: int = 0):
@@ -55,9 +57,33 @@ def test_stall_rule_stops_a_run_that_makes_no_progress():
     A, b, point_residual, sample = _linear_problem(40, 10)
     exact = torch.linalg.lstsq(A, b).solution
     res = levenberg_marquardt(exact, point_residual, sample, steps=500, points=40, min_progress=2.0, window=5)
-    assert res.stop_reason == "stalled" and res.steps == 20  # four windows of five, no progress after the first
+    assert res.stop_reason == "stalled" and res.steps == 15  # three windows of five, no progress after the first
+    longer = levenberg_marquardt(exact, point_residual, sample, steps=500, points=40, min_progress=2.0, window=5,
+                                 stall_windows=3)
+    assert longer.stop_reason == "stalled" and longer.steps == 20
     full = levenberg_marquardt(exact, point_residual, sample, steps=25, points=40)
     assert full.steps == 25 and full.stop_reason == "lm_steps"
+
+
+def test_a_point_schedule_moves_on_at_each_stall_and_stops_at_the_last():
+    """points=(20, 30, 40): each stall moves to the next count, the stall rule starts afresh there, and only the
+    stall at 40 points stops the run."""
+    A, b, point_residual, _ = _linear_problem(40, 10)
+    exact = torch.linalg.lstsq(A, b).solution
+    sizes = []
+
+    def sample(n):
+        sizes.append(n)
+        return A[:n], b[:n]
+
+    res = levenberg_marquardt(exact, point_residual, sample, steps=500, points=(20, 30, 40), min_progress=2.0,
+                              window=5)
+    assert res.stop_reason == "stalled" and sizes == [20] * 15 + [30] * 15 + [40] * 15
+    sizes.clear()
+    levenberg_marquardt(exact, point_residual, sample, steps=10, points=(20, 40))  # no stall rule: no stall
+    assert sizes == [20] * 10
+    with pytest.raises(ValueError, match="schedule must grow"):
+        levenberg_marquardt(exact, point_residual, sample, steps=3, points=(40, 20))
 
 
 def test_bad_arguments_and_non_finite_residuals_are_refused():
@@ -90,6 +116,9 @@ def test_default_recipe_is_levenberg_marquardt_and_refuses_the_soft_loss():
         ph.TrainConfig(ansatz=False)
     with pytest.raises(ValueError, match="lm_min_progress"):
         ph.TrainConfig(lm_min_progress=0.5)
+    with pytest.raises(ValueError, match="lm_points_coarse"):
+        ph.TrainConfig(lm_points=500)  # the coarse level (700 points) must have fewer points than the last
+    assert ph.TrainConfig(lm_points=500, lm_points_coarse=None).lm_points == 500
 
 
 def test_a_config_stored_before_levenberg_marquardt_loads_without_it():
@@ -98,6 +127,11 @@ def test_a_config_stored_before_levenberg_marquardt_loads_without_it():
         old.pop(key)
     cfg = ph.TrainConfig.from_dict(old)
     assert cfg.lm_steps == 0 and not cfg.ansatz
+    before_schedule = ph.TrainConfig().to_dict()
+    for key in ("lm_points_coarse", "lm_stall_windows"):
+        before_schedule.pop(key)
+    cfg = ph.TrainConfig.from_dict(before_schedule)  # trained on lm_points throughout, stall span of three windows
+    assert cfg.lm_points_coarse is None and cfg.lm_stall_windows == 3
     assert ph.TrainConfig.from_dict(ph.TrainConfig().to_dict()) == ph.TrainConfig()
 
 
@@ -125,10 +159,27 @@ def test_levenberg_marquardt_is_deterministic_and_extends():
 
 
 def test_steady_state_baseline_trains_with_levenberg_marquardt():
-    sol = ph.SteadyStateSolver(ph.systems.pendulum(), ph.TrainConfig(**TINY_LM), seed=0, device="cpu",
-                               progress=False).solve()
+    cfg = ph.TrainConfig(**{**TINY_LM, "lm_points_coarse": None})  # 12 iterations: too few to leave a coarse level
+    sol = ph.SteadyStateSolver(ph.systems.pendulum(), cfg, seed=0, device="cpu", progress=False).solve()
     h = sol.history
     assert "lm" in h.phase and h.final_loss < 0.25 * h.loss[0]
+
+
+@pytest.mark.parametrize("min_progress, expected", [(2.0, (60, 200)), (None, (200,))])
+def test_training_passes_the_point_schedule_only_with_the_stall_rule(monkeypatch, min_progress, expected):
+    """The coarse level ends on a stall: without the stall rule a stage would never leave it, so it trains on
+    lm_points throughout."""
+    seen = []
+    real = ph.training.levenberg_marquardt
+
+    def spy(theta, point_residual, sample, steps, points, **kw):
+        seen.append(tuple(points))
+        return real(theta, point_residual, sample, steps, points, **kw)
+
+    monkeypatch.setattr("pinnhjb.training.levenberg_marquardt", spy)
+    cfg = ph.TrainConfig(**{**TINY_LM, "lm_steps": 3, "lm_min_progress": min_progress})
+    ph.FiniteHorizonSolver(ph.systems.pendulum(), cfg, seed=0, device="cpu", progress=False).solve(0.5)
+    assert seen == [expected]
 
 
 def test_max_time_stops_the_levenberg_marquardt_phase():

@@ -107,7 +107,7 @@ def test_progress_bar_shows_the_latest_loss(pendulum, monkeypatch, phase):
     bars = []
     monkeypatch.setattr("pinnhjb.training.tqdm", lambda *a, **k: bars.append(_RecordingBar()) or bars[-1])
     steps = {"adam": dict(adam_steps=7), "lbfgs": dict(adam_steps=0, lbfgs_steps=7),
-             "lm": dict(adam_steps=0, lm_steps=7, lm_points=64, lm_min_progress=None)}[phase]
+             "lm": dict(adam_steps=0, lm_steps=7, lm_points=64, lm_points_coarse=None, lm_min_progress=None)}[phase]
     config = ph.TrainConfig.preset("quick", **{**FAST, "log_every": 5, "dtype": "float64", **steps})
     sol = ph.FiniteHorizonSolver(pendulum, config, seed=0, device="cpu", progress=True).solve(0.5)
     (bar,) = [b for b in bars if b.n]
