@@ -14,10 +14,10 @@ iteration costs about as much as a few dozen Adam steps and does far more: see `
 
 The number of points may grow in a schedule, e.g. (700, 1500) for a network of about 1300 weights: the early
 iterations, far from the solution, take fewer points than weights (the cheap dual solve: its cost grows with
-N^2 P instead of N P^2, and J itself with N), which fits each batch almost exactly and so stalls at a noise floor
-(on the quartic system, E about 2e-5); once the loss stalls there, the iterations move to more points than
-weights, where a step fits the residual rather than one batch, and polish to the accuracy a full-size batch
-gives, in a fraction of the time full-size batches from the start take.
+N^2 P instead of N P^2, and J itself with N), which fits each batch almost exactly and so stalls at a noise
+floor; once the loss stalls there, the iterations move to more points than weights, where a step fits the
+residual rather than one batch, and polish to the accuracy a full-size batch gives, in a fraction of the time
+that full-size batches from the start take.
 """
 from __future__ import annotations
 
