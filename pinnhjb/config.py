@@ -94,7 +94,7 @@ class TrainConfig:
             "lbfgs_steps": self.lbfgs_steps >= 0, "lr": self.lr > 0, "log_every": self.log_every >= 1,
             "lm_steps": self.lm_steps >= 0, "lm_points": self.lm_points >= 1, "lm_damping": self.lm_damping > 0,
             "lm_min_progress": self.lm_min_progress is None or self.lm_min_progress >= 1,
-            "lm_points_coarse": self.lm_points_coarse is None or 1 <= self.lm_points_coarse < self.lm_points,
+            "lm_points_coarse": self.lm_points_coarse is None or self.lm_points_coarse >= 1,
             "lm_stall_windows": self.lm_stall_windows >= 1,
             "lr_decay": self.lr_decay >= 0, "lbfgs_points": self.lbfgs_points >= 1,
             "n_flow": self.n_flow >= 1, "n_boundary": self.n_boundary >= 1, "n_origin": self.n_origin >= 1,
@@ -111,6 +111,9 @@ class TrainConfig:
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"invalid TrainConfig field(s) {bad}: " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad))
+        if self.lm_points_coarse is not None and self.lm_points_coarse >= self.lm_points:
+            raise ValueError(f"lm_points_coarse={self.lm_points_coarse} must be fewer than lm_points={self.lm_points} "
+                             "(the coarse level comes first); set lm_points_coarse=None to use lm_points throughout")
         if self.lm_steps > 0 and not self.ansatz:
             raise ValueError("lm_steps > 0 needs ansatz=True (Levenberg-Marquardt minimises the flow residual only)")
         if self.sampling == "fixed" and self.n_flow < self.batch_size:
