@@ -83,7 +83,7 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
     ``stall_windows`` windows. ``points`` may be a growing schedule (n_1, n_2, ...): each stall moves on to the
     next count (the stall rule starts afresh there), and only a stall at the last one stops.
     """
-    schedule = [int(points)] if isinstance(points, (int, float)) else [int(n) for n in points]
+    schedule = [int(n) for n in points] if isinstance(points, Sequence) else [int(points)]
     if (steps < 0 or not schedule or min(schedule) < 1 or not damping > 0 or window < 1 or stall_windows < 1
             or any(b <= a for a, b in zip(schedule, schedule[1:]))):
         raise ValueError(f"need steps >= 0, points >= 1 (a schedule must grow), damping > 0, window >= 1, "
