@@ -12,14 +12,11 @@ SPEED = Path(__file__).resolve().parents[1] / "benchmarks" / "speed.py"
 
 @pytest.fixture(scope="module")
 def speed():
-    before = os.environ.get("CUDA_VISIBLE_DEVICES")  # the script hides GPUs at import: undo that for the suite
+    before = os.environ.get("CUDA_VISIBLE_DEVICES")
     spec = importlib.util.spec_from_file_location("speed_benchmark", SPEED)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    if before is None:
-        os.environ.pop("CUDA_VISIBLE_DEVICES", None)
-    else:
-        os.environ["CUDA_VISIBLE_DEVICES"] = before
+    assert os.environ.get("CUDA_VISIBLE_DEVICES") == before  # importing it hides no GPU (only main(--device cpu))
     return module
 
 
@@ -105,3 +102,22 @@ def test_best_step_table_gives_each_target_its_own_best_run(speed):
     assert "21.0 (default@2)" in rows["default"] and "52.0 (default@0.5)" in rows["default"]
     assert "30.0 (deepxde-chain-small@1): 1.43x" in rows["deepxde-chain-small"]
     assert "not reached" in rows["deepxde-chain-small"]
+
+
+def test_tables_of_an_interrupted_run_say_so(speed, tmp_path):
+    """The tables are rewritten after every run; until the last one they carry how many of the planned runs ran."""
+    meta = {"budget_scale": 1.0, "steps": [2.0], "machine": "m", "torch": "t", "threads": 2, "deepxde": "d",
+            "pinnhjb": "p", "seed": 0, "paper_stage_seconds": 60.0, "created": "now", "checkpoint_every": 500,
+            "lbfgs_checkpoint_every": 100}
+    summary = {"paper_final_E": None, "methods": {"default@2": run("default", 2.0, (5.0, 5.0, 5.0))}, "best": {}}
+    speed.write_tables(summary, {**meta, "runs_done": 1, "runs_planned": 3}, tmp_path)
+    assert "Interrupted: 1 of 3 planned runs done" in (tmp_path / "speed.md").read_text()
+    speed.write_tables(summary, {**meta, "runs_done": 3, "runs_planned": 3}, tmp_path)
+    assert "Interrupted" not in (tmp_path / "speed.md").read_text()
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="CUDA is available here")
+def test_cuda_benchmark_without_cuda_is_refused(speed, capsys):
+    with pytest.raises(SystemExit):
+        speed.main(["--device", "cuda", "--methods", "default"])
+    assert "CUDA is not available" in capsys.readouterr().err
