@@ -2,9 +2,10 @@
 
 The loss of Algorithm 1 under the ansatz is a mean of squared residuals, mean_i F_e(x_i, t_i; theta)^2, so its
 Gauss-Newton model needs only the Jacobian J (N x P) of the residual vector in the weights. Each iteration
-draws fresh collocation points, forms J with ``torch.func`` (``jacrev`` of one point's residual, ``vmap``-ed
-over the points: the residual itself holds first derivatives of the network, so J holds mixed second
-derivatives, all by autograd), and solves
+draws fresh collocation points, forms J (by default with ``torch.func``: ``jacrev`` of one point's residual,
+``vmap``-ed over the points; the residual itself holds first derivatives of the network, so J holds mixed second
+derivatives, all by autograd; training passes the faster structured Jacobian of :mod:`pinnhjb.jacobian`), and
+solves
 
     (J'J + lambda I) delta = -J'r          (or, when N < P, delta = -J'(JJ' + lambda I)^{-1} r, the same step)
 
@@ -72,7 +73,8 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
                         steps: int, points: int | Sequence[int], damping: float = 1e-3,
                         max_time: float | None = None, on_step: Callable[[int, float, float], None] | None = None,
                         max_retries: int = 12, min_progress: float | None = None, window: int = 10,
-                        stall_windows: int = 2, desc: str = "LM") -> LMResult:
+                        stall_windows: int = 2, desc: str = "LM",
+                        jacobian: Callable[..., tuple[Tensor, Tensor]] | None = None) -> LMResult:
     """Minimise mean_i point_residual(theta, *batch_i)^2 over fresh batches from ``sample(points)``.
 
     ``point_residual(theta, *args)`` is one point's residual (a scalar) with ``args`` the point's data (the
@@ -81,7 +83,9 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
     with ``min_progress``, once the loss has stalled: the loss (geometric mean over a ``window`` of
     iterations, the points being fresh each time) fell by less than the factor ``min_progress`` over the last
     ``stall_windows`` windows. ``points`` may be a growing schedule (n_1, n_2, ...): each stall moves on to the
-    next count (the stall rule starts afresh there), and only a stall at the last one stops.
+    next count (the stall rule starts afresh there), and only a stall at the last one stops. ``jacobian(theta,
+    *batch) -> (r, J)``, when given, is the batch's residual vector and its Jacobian by a faster route than the
+    default ``vmap(jacrev(point_residual))`` (it must agree with it: see :mod:`pinnhjb.jacobian`).
     """
     schedule = [int(n) for n in points] if isinstance(points, Sequence) else [int(points)]
     if (steps < 0 or not schedule or min(schedule) < 1 or not damping > 0 or window < 1 or stall_windows < 1
@@ -102,8 +106,11 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
         batch = sample(schedule[level])
         dims = (None,) + (0,) * len(batch)
         residuals = vmap(point_residual, in_dims=dims)
-        J = vmap(jacrev(point_residual), in_dims=dims)(theta, *batch)
-        r = residuals(theta, *batch)
+        if jacobian is None:
+            J = vmap(jacrev(point_residual), in_dims=dims)(theta, *batch)
+            r = residuals(theta, *batch)
+        else:
+            r, J = jacobian(theta, *batch)
         loss = (r @ r).item() / r.numel()
         if not torch.isfinite(J).all() or not torch.isfinite(r).all():
             raise FloatingPointError(f"{desc}: residual or Jacobian became non-finite at iteration {done}")

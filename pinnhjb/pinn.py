@@ -150,10 +150,19 @@ class FiniteHorizonValue(_Scaled):
         self.terminal_cost = ZeroTerminalCost() if terminal_cost is None else terminal_cost
         self.net = MLP(n + 1, width, depth, activation)
 
+    def net_inputs(self, x: Tensor, t: Tensor) -> Tensor:
+        """The network's input for (x, t): x scaled from the training box and t from [0, T], to [-1, 1]."""
+        tau = 2.0 * t.reshape(-1, 1) / self.horizon - 1.0
+        return torch.cat([self.scale_x(x), tau], dim=-1)
+
+    def input_scale(self, like: Tensor) -> Tensor:
+        """d net_inputs / d (x, t), a diagonal: (1 / halfwidth, 2 / T), shape (n + 1,)."""
+        return torch.cat([1.0 / self.halfwidth.to(like),
+                          torch.full((1,), 2.0 / self.horizon, dtype=like.dtype, device=like.device)])
+
     def raw(self, x: Tensor, t: Tensor) -> Tensor:
         """The bare network N(x, t), inputs scaled to [-1, 1]."""
-        tau = 2.0 * t.reshape(-1, 1) / self.horizon - 1.0
-        return self.net(torch.cat([self.scale_x(x), tau], dim=-1))
+        return self.net(self.net_inputs(x, t))
 
     def correction(self, x: Tensor, t: Tensor) -> Tensor:
         """v - phi under the ansatz, (T - t)/T (N(x,t) - N(0,t)); the bare N(x, t) otherwise."""
@@ -188,9 +197,14 @@ class FiniteHorizonValue(_Scaled):
         n_0 = self.raw(torch.zeros(origin_times.shape[0], x.shape[1], dtype=x.dtype, device=x.device), origin_times)
         # Each output depends on its own row only, so one backward gives every per-point derivative.
         gx, nt_x, nt_0 = torch.autograd.grad(n_x.sum() + n_0.sum(), (x, t, origin_times), create_graph=True)
-        diff, dt_diff = n_x - n_0[origin_index], nt_x - nt_0[origin_index]
+        return self.ansatz_derivatives(t, n_x, n_0[origin_index], gx, nt_x, nt_0[origin_index])
+
+    def ansatz_derivatives(self, t: Tensor, n_x: Tensor, n_0: Tensor, gx: Tensor, nt_x: Tensor,
+                           nt_0: Tensor) -> tuple[Tensor, Tensor]:
+        """grad_x and d/dt of the correction (T - t)/T (N(x, t) - N(0, t)) from N(x, t), N(0, t), grad_x N(x, t),
+        d/dt N(x, t) and d/dt N(0, t) per point."""
         s = (self.horizon - t) / self.horizon
-        return s.unsqueeze(-1) * gx, s * dt_diff - diff / self.horizon
+        return s.unsqueeze(-1) * gx, s * (nt_x - nt_0) - (n_x - n_0) / self.horizon
 
 
 class SteadyStateValue(_Scaled):

@@ -20,6 +20,7 @@ from tqdm.auto import tqdm
 
 from .config import TrainConfig
 from .gauss_newton import FlatParameters, levenberg_marquardt
+from .jacobian import residual_jacobian
 from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
 
 Tensor = torch.Tensor
@@ -167,6 +168,36 @@ def _finite_horizon_point_residual(system, model: FiniteHorizonValue, flat: Flat
     return residual
 
 
+def _finite_horizon_jacobian(system, model: FiniteHorizonValue):
+    """The batched twin of :func:`_finite_horizon_point_residual`: (r, J) over a batch by
+    :func:`pinnhjb.jacobian.residual_jacobian`, with N(x, t) and N(0, t) of the ansatz as two rows per point."""
+    n, T = system.n, model.horizon
+
+    def jacobian(theta, x, t, dphi, fx, gx, qx):
+        N = x.shape[0]
+        z = torch.cat([model.net_inputs(x, t), model.net_inputs(torch.zeros_like(x), t)])
+        dz = torch.diag(model.input_scale(x)).expand(2 * N, n + 1, n + 1)
+
+        def residual_of(out, dout):
+            gxc, gtc = model.ansatz_derivatives(t, out[:N], out[N:], dout[:N, :n], dout[:N, n], dout[N:, n])
+            return gtc + system.hamiltonian_min(x, gxc + dphi, fx, gx, qx)
+
+        return residual_jacobian(model.net, theta, z, dz, residual_of, copies=2)
+
+    return jacobian
+
+
+def _steady_state_jacobian(system, model: SteadyStateValue):
+    """The batched twin of :func:`_steady_state_point_residual` (V = N(x) - N(0): grad V = grad N(x))."""
+
+    def jacobian(theta, x, fx, gx, qx):
+        dz = torch.diag(1.0 / model.halfwidth).expand(x.shape[0], system.n, system.n)
+        return residual_jacobian(model.net, theta, model.scale_x(x), dz,
+                                 lambda out, dout: system.hamiltonian_min(x, dout, fx, gx, qx))
+
+    return jacobian
+
+
 def _steady_state_point_residual(system, model: SteadyStateValue, flat: FlatParameters):
     """E_e(x) of eq. (flow_res) for one point as a function of the flat weights (ansatz only)."""
 
@@ -198,7 +229,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
     Levenberg-Marquardt.
 
     ``sample(size)`` returns a fresh batch; ``epochs()`` yields lists of mini-batches (fixed data);
-    ``lm = (flat, point_residual, lm_sample)`` for the Levenberg-Marquardt phase (see :mod:`.gauss_newton`).
+    ``lm = (flat, point_residual, lm_sample, jacobian)`` for the Levenberg-Marquardt phase (see :mod:`.gauss_newton`).
     """
     params = list(params)
     hist = TrainHistory()
@@ -284,7 +315,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         hist.final_loss = last
     iterations = 0
     if config.lm_steps > 0:
-        flat, point_residual, lm_sample = lm
+        flat, point_residual, lm_sample, jacobian = lm
         done = step + evals
 
         def on_step(k, loss, damping):
@@ -301,7 +332,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
             result = levenberg_marquardt(flat.get(), point_residual, lm_sample, config.lm_steps, points,
                                          damping=config.lm_damping, max_time=left, on_step=on_step,
                                          min_progress=config.lm_min_progress,
-                                         stall_windows=config.lm_stall_windows, desc=desc)
+                                         stall_windows=config.lm_stall_windows, desc=desc, jacobian=jacobian)
             flat.set(result.theta)
             iterations = result.steps
             hist.final_loss = result.loss
@@ -389,7 +420,8 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
             return flow["x"], t, flow["dphi"], flow["fx"], flow["gx"], flow["qx"]
 
         flat = FlatParameters(model.net)
-        lm = (flat, _finite_horizon_point_residual(system, model, flat), lm_sample)
+        lm = (flat, _finite_horizon_point_residual(system, model, flat), lm_sample,
+              _finite_horizon_jacobian(system, model))
     params = [q for q in model.net.parameters()]
     return _optimize(params, batch_loss, sample, epochs, config, desc, progress, lm)
 
@@ -418,7 +450,7 @@ def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, see
             return flow["x"], flow["fx"], flow["gx"], flow["qx"]
 
         flat = FlatParameters(model.net)
-        lm = (flat, _steady_state_point_residual(system, model, flat), lm_sample)
+        lm = (flat, _steady_state_point_residual(system, model, flat), lm_sample, _steady_state_jacobian(system, model))
     return _optimize(model.net.parameters(), lambda batch: _steady_state_loss(system, model, batch), sample,
                      epochs, config, desc, progress, lm)
 
