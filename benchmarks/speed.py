@@ -21,10 +21,11 @@ One run trains, in this one process, one after the other (so every method sees t
 
 Chain step. The paper's recipe runs the paper's chain (T = 0.5 -> 4 in 0.5 s steps). Every other chain method
 (``default``, ``adam_lbfgs``, ``deepxde-chain``, ``deepxde-chain-small``) runs once for each step of ``--steps``
-(0.5, 1 and 2 s by default; the first stage is one step long, the per-stage budget does not change with the step),
-as runs named ``method@step``: the step that reaches a target first differs between optimisers (a long stage is
-harder to train), so the goal lines compare every method at its own best step, ours included. The one-stage
-DeepXDE run gets the 0.5 s chain's whole budget.
+(0.5, 1, 2 and 4 s by default, 4 s being one stage; the first stage is one step long, the per-stage budget does not
+change with the step), as runs named ``method@step``: the step that reaches a target first differs between
+optimisers (a long stage is harder to train), so the goal lines compare every method at its own best step, ours
+included. The one-stage ``deepxde`` run gets the 0.5 s chain's whole budget (``deepxde-chain@4`` is one stage with
+one stage's budget).
 
 DeepXDE offers first-order optimisers and L-BFGS, not Levenberg-Marquardt, so its runs get the ``adam_lbfgs``
 recipe's optimiser settings: inputs scaled to [-1, 1], float32, that recipe's number of fresh flow points per Adam
@@ -45,6 +46,7 @@ Writes ``speed.md`` and ``speed.json`` to ``benchmarks/results/`` (or ``--out``)
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -67,7 +69,7 @@ METHODS = ("paper", "default", "adam_lbfgs", "deepxde", "deepxde-chain", "deepxd
 ONE_STAGE = ("deepxde",)  # trains [0, T] at once; every other method but `paper` runs once per chain step
 TARGETS = (1e-3, 1.5e-4)
 HORIZON, PAPER_STEP = 4.0, 0.5  # the paper's quartic extension run: T = 0.5 -> 4 in 0.5 s steps
-STEPS = (0.5, 1.0, 2.0)  # chain steps (first stage = one step) given to every chain method but the paper's
+STEPS = (0.5, 1.0, 2.0, 4.0)  # chain steps (first stage = one step) given to every chain method but the paper's
 N_STAGES = int(round(HORIZON / PAPER_STEP))
 # the paper's reported final E at T = 4 (Section 6.2), quoted once in pinnhjb.reproduce.CASES
 PAPER_E_QUARTIC = next(c for c in ph.reproduce.CASES if c.name == "quartic_extension").paper[HORIZON]
@@ -317,8 +319,11 @@ class _DdeCheckpoint:
 
 
 def run_deepxde(name: str, method: str, step: float | None, args, system, dde) -> Run:
-    """One DeepXDE run, on ``args.device`` (DeepXDE puts its nets and data on torch's default device)."""
-    with torch.device(args.device):
+    """One DeepXDE run, on ``args.device``. DeepXDE puts its nets and data on torch's default device, which its
+    import sets to CUDA where there is one (a torch function mode that sees every operation); ``main`` clears that,
+    so only DeepXDE's GPU runs are under it, as they would be without us. Its CPU runs are under no mode (one costs
+    a small network's thousands of tiny steps much of their time)."""
+    with torch.device(args.device) if args.device != "cpu" else contextlib.nullcontext():
         return _run_deepxde(name, method, step, args, system, dde)
 
 
@@ -752,7 +757,7 @@ def main(argv=None):
         dde, dde_missing = import_deepxde()
         dde_import = time.perf_counter() - t0
         torch.set_num_threads(args.threads)  # in case the import touched it
-        torch.set_default_device("cpu")  # DeepXDE's runs set their device themselves (run_deepxde)
+        torch.set_default_device(None)  # no device mode outside DeepXDE's own GPU runs (run_deepxde)
 
     warm = warm_up(args.device)
     meta = provenance(seed=args.seed, threads=torch.get_num_threads(), budget_scale=args.budget_scale,

@@ -2,7 +2,7 @@
 HJB (Fotiadis & Vamvoudakis). See the README and the book for the map from the paper to the modules:
 
 systems (f, g, Q, R, Omega as data) · lq (Riccati ground truth) · pinn (networks, residuals) ·
-config / training (Algorithm 1) · gauss_newton (Levenberg-Marquardt, our optimiser) ·
+config / training (Algorithm 1) · gauss_newton (Levenberg-Marquardt, our optimiser) · jacobian (its fast Jacobian) ·
 solver (solve, extend = Theorem 2, solve_until, steady-state baseline) · metrics (E, errors, closed loop) ·
 storage (checkpoints with provenance).
 """

@@ -1,8 +1,8 @@
 """Per-point Jacobians of first-order PDE residuals of an :class:`~pinnhjb.pinn.MLP`, in its flat weights, fast.
 
 Levenberg-Marquardt (:mod:`pinnhjb.gauss_newton`) needs J = d r / d theta (N x P) of the residual vector r. The
-plain way, ``vmap(jacrev(point_residual))``, is exact and general but costs about as much as the Gram product
-J'J itself for the small networks of our default, almost all of it in the overhead of batching tiny operations.
+plain way, ``vmap(jacrev(point_residual))``, is exact and general but, for the small networks of our default, a
+large share of each iteration, most of it in the overhead of batching many tiny operations.
 For a residual that uses the network's value and its first input derivatives only (the HJB residuals F_e of
 eq. (5) and E_e of eq. (flow_res) do), J has a structure that makes it cheap:
 

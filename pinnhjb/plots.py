@@ -166,3 +166,31 @@ def time_to_accuracy(traces: dict, targets: dict | None = None, title: str = "")
         ax.set_title(title)
     fig.tight_layout()
     return fig
+
+
+def grouped_bars(values: dict, ylabel: str, title: str = "", log: bool = True):
+    """Bars of ``values``: group label -> {bar label -> value or None}, one colour per bar label (e.g. methods by
+    machine). None draws no bar and writes "none" at the axis (not run, or never reached)."""
+    if not values:
+        raise ValueError("nothing to plot: values is empty")
+    bars = list(dict.fromkeys(k for group in values.values() for k in group))
+    width = 0.8 / len(bars)
+    fig, ax = plt.subplots(figsize=(7.0, 3.6))
+    for j, bar in enumerate(bars):
+        xs = [i + (j - (len(bars) - 1) / 2) * width for i in range(len(values))]
+        ys = [group.get(bar) for group in values.values()]
+        ax.bar([x for x, y in zip(xs, ys) if y is not None], [y for y in ys if y is not None], width, label=bar)
+        for x, y in zip(xs, ys):
+            if y is None:
+                ax.annotate("none", (x, 0), xytext=(0, 3), textcoords="offset points", ha="center", fontsize=7,
+                            xycoords=("data", "axes fraction"))
+    ax.set_xticks(range(len(values)), list(values), fontsize=8)
+    if log:
+        ax.set_yscale("log")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    return fig

@@ -52,3 +52,15 @@ def test_time_to_accuracy_draws_one_line_per_run_and_the_targets():
     plt.close(fig)
     with pytest.raises(ValueError, match="one length"):
         plots.time_to_accuracy({"bad": ([1.0, 2.0], [1.0])})
+
+
+def test_grouped_bars_draw_each_value_and_mark_the_missing():
+    fig = plots.grouped_bars({"ours": {"CPU": 10.0, "GPU": 5.0}, "theirs": {"CPU": 25.0, "GPU": None}}, "s")
+    ax = fig.axes[0]
+    heights = sorted(round(p.get_height(), 6) for p in ax.patches)
+    assert heights == [5.0, 10.0, 25.0]  # three bars: the missing value draws none
+    assert [t.get_text() for t in ax.texts] == ["none"] and ax.get_yscale() == "log"
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["ours", "theirs"]
+    plt.close(fig)
+    with pytest.raises(ValueError, match="empty"):
+        plots.grouped_bars({}, "s")
