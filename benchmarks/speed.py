@@ -56,13 +56,13 @@ import time
 import traceback
 from pathlib import Path
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
-import pinnhjb as ph  # noqa: E402
-from pinnhjb.metrics import infinite_horizon_residual, optimality_errors  # noqa: E402
-from pinnhjb.storage import provenance  # noqa: E402
-import pinnhjb.reproduce  # noqa: E402,F401  (the paper's quoted numbers)
+import pinnhjb as ph
+from pinnhjb.metrics import infinite_horizon_residual, optimality_errors
+from pinnhjb.storage import provenance
+import pinnhjb.reproduce  # noqa: F401  (the paper's quoted numbers)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("paper", "default", "adam_lbfgs", "deepxde", "deepxde-chain", "deepxde-chain-small")

@@ -121,3 +121,16 @@ def test_cuda_benchmark_without_cuda_is_refused(speed, capsys):
     with pytest.raises(SystemExit):
         speed.main(["--device", "cuda", "--methods", "default"])
     assert "CUDA is not available" in capsys.readouterr().err
+
+
+def test_deepxde_cpu_runs_are_under_no_torch_function_mode(speed, monkeypatch):
+    """A device mode sees every torch operation; on the CPU it costs DeepXDE's many small steps much of their time,
+    so its CPU runs must have none (its GPU runs get the one its own import would set)."""
+    from types import SimpleNamespace
+
+    from torch.overrides import _get_current_function_mode_stack
+
+    seen = []
+    monkeypatch.setattr(speed, "_run_deepxde", lambda *a: seen.append(len(_get_current_function_mode_stack())))
+    speed.run_deepxde("x", "deepxde-chain", 1.0, SimpleNamespace(device="cpu"), None, None)
+    assert seen == [0]
