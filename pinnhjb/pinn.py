@@ -70,6 +70,10 @@ class _Scaled(nn.Module):
     def scale_x(self, x: Tensor) -> Tensor:
         return (x - self.center) / self.halfwidth
 
+    def scale_x_derivative(self, like: Tensor) -> Tensor:
+        """d scale_x / d x, a diagonal: 1 / halfwidth, shape (n,), in ``like``'s dtype and device."""
+        return 1.0 / self.halfwidth.to(like)
+
 
 # ---------------------------------------------------------------------- terminal costs
 
@@ -157,7 +161,7 @@ class FiniteHorizonValue(_Scaled):
 
     def input_scale(self, like: Tensor) -> Tensor:
         """d net_inputs / d (x, t), a diagonal: (1 / halfwidth, 2 / T), shape (n + 1,)."""
-        return torch.cat([1.0 / self.halfwidth.to(like),
+        return torch.cat([self.scale_x_derivative(like),
                           torch.full((1,), 2.0 / self.horizon, dtype=like.dtype, device=like.device)])
 
     def raw(self, x: Tensor, t: Tensor) -> Tensor:

@@ -191,7 +191,7 @@ def _steady_state_jacobian(system, model: SteadyStateValue):
     """The batched twin of :func:`_steady_state_point_residual` (V = N(x) - N(0): grad V = grad N(x))."""
 
     def jacobian(theta, x, fx, gx, qx):
-        dz = torch.diag(1.0 / model.halfwidth).expand(x.shape[0], system.n, system.n)
+        dz = torch.diag(model.scale_x_derivative(x)).expand(x.shape[0], system.n, system.n)
         return residual_jacobian(model.net, theta, model.scale_x(x), dz,
                                  lambda out, dout: system.hamiltonian_min(x, dout, fx, gx, qx))
 
