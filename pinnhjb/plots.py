@@ -1,20 +1,57 @@
 """Figures, one style for every chapter: the paper's surfaces (Figures 1-7) and the book's own plots.
 
 Every function takes plain data or a solution object and returns a matplotlib ``Figure``; nothing is shown
-or saved here.
+or saved here. Figures are drawn for the book's content column: at most :data:`WIDTH` inches wide at 100 dpi
+(one inch = 100 CSS pixels as displayed), at most two 3-D panels a row, fonts of 10 pt and more. Call
+:func:`use_book_style` once per notebook: it sets those fonts and makes the inline backend emit PNGs at twice
+the resolution (sharp on high-density screens, displayed at their size in inches x 100 px).
 """
 from __future__ import annotations
 
 import math
 
+import matplotlib as mpl
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["grid_2d", "slice_mesh", "surfaces", "value_policy_residual", "value_and_error", "policy_and_error",
-           "loss_curve", "time_to_accuracy"]
+__all__ = ["WIDTH", "use_book_style", "panels", "grid_2d", "slice_mesh", "surfaces", "value_policy_residual",
+           "value_and_error", "policy_and_error", "loss_curve", "time_to_accuracy", "grouped_bars"]
 
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
+WIDTH = 7.0  # inches: the widest figure the content column shows at full size (700 CSS px)
+STYLE = {"figure.dpi": 100, "font.size": 11, "axes.titlesize": 11, "axes.labelsize": 11,
+         "xtick.labelsize": 10, "ytick.labelsize": 10, "legend.fontsize": 10, "figure.titlesize": 12,
+         "savefig.bbox": "tight"}
+
+
+def use_book_style(retina: bool = True) -> None:
+    """Set the book's fonts (:data:`STYLE`) and, in a notebook, PNG output at 2x resolution."""
+    mpl.rcParams.update(STYLE)
+    if retina:
+        try:
+            from matplotlib_inline.backend_inline import set_matplotlib_formats
+        except ImportError:  # not in IPython: nothing to configure
+            return
+        set_matplotlib_formats("retina")
+
+
+def panels(k: int, ncols: int = 2, height: float = 3.0, **subplot_kw):
+    """A figure of ``k`` 2-D panels, ``ncols`` a row, as wide as the column: (fig, list of k axes).
+
+    * ``k``: the number of panels; unused cells of the last row are removed.
+    * ``ncols``: panels per row (at most 3 keeps tick labels readable).
+    * ``height``: inches per row.
+    * ``subplot_kw``: passed to ``plt.subplots`` (e.g. ``sharey=True``).
+    """
+    ncols = max(1, min(ncols, k))
+    nrows = math.ceil(k / ncols)
+    width = WIDTH if ncols > 1 else min(WIDTH, 5.5)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(width, height * nrows), squeeze=False, **subplot_kw)
+    axes = list(axes.ravel())
+    for ax in axes[k:]:
+        ax.remove()
+    return fig, axes[:k]
 
 
 def grid_2d(system, points_per_dim: int = 41):
@@ -39,28 +76,49 @@ def slice_mesh(system, axes: tuple[int, int] = (0, 1), fixed=None, points_per_di
 
 
 def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str = "", zlabels=None,
-             diverging: list[bool] | None = None, axis_labels: tuple[str, str] = ("$x_1$", "$x_2$")):
-    """Side-by-side 3-D surfaces of fields on the mesh (x1, x2), as in the paper's figures."""
+             diverging: list[bool] | None = None, axis_labels: tuple[str, str] = ("$x_1$", "$x_2$"),
+             limits: list | None = None, ncols: int = 2):
+    """3-D surfaces of fields on the mesh (x1, x2), as in the paper's figures, ``ncols`` a row.
+
+    * ``fields``, ``titles``: one array (any shape with x1.size entries) and one title per panel.
+    * ``diverging``: per panel, True for an error (white at zero, a symmetric colour scale).
+    * ``limits``: per panel, None or (lo, hi) for the vertical axis and the colour scale; fix them when frames
+      of an explorer are compared, so that a shrinking field looks smaller.
+    * ``ncols``: panels per row (2 keeps 3-D axes readable in the content column).
+    """
     k = len(fields)
-    fig = plt.figure(figsize=(4.6 * k, 4.0))
+    ncols = max(1, min(ncols, k))
+    nrows = math.ceil(k / ncols)
+    width = WIDTH if ncols > 1 else 0.6 * WIDTH
+    fig = plt.figure(figsize=(width, 3.2 * nrows + (0.35 if suptitle else 0.0)))
+    grid = fig.add_gridspec(nrows, 2 * ncols)
     for i, (z, title) in enumerate(zip(fields, titles)):
-        ax = fig.add_subplot(1, k, i + 1, projection="3d")
-        z = z.reshape(x1.shape)
+        row, col = divmod(i, ncols)
+        shift = ncols - min(ncols, k - row * ncols)  # a short last row is centred (half-panel steps)
+        ax = fig.add_subplot(grid[row, shift + 2 * col:shift + 2 * col + 2], projection="3d")
+        z = np.asarray(z, dtype=float).reshape(x1.shape)
+        lim = limits[i] if limits else None
         if diverging and diverging[i]:  # errors: white at zero, symmetric colour scale
-            m = float(np.abs(z).max()) or 1.0
+            m = max(abs(lim[0]), abs(lim[1])) if lim else (float(np.abs(z).max()) or 1.0)
             style = {"cmap": DIVERGING, "vmin": -m, "vmax": m}
         else:
-            style = {"cmap": CMAP}
+            style = {"cmap": CMAP, **({"vmin": lim[0], "vmax": lim[1]} if lim else {})}
         ax.plot_surface(x1, x2, z, linewidth=0, antialiased=True, **style)
-        ax.set_xlabel(axis_labels[0])
-        ax.set_ylabel(axis_labels[1])
+        if lim:
+            ax.set_zlim(*lim)
+        ax.set_xlabel(axis_labels[0], labelpad=-2)
+        ax.set_ylabel(axis_labels[1], labelpad=-2)
+        ax.tick_params(pad=0)
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+            axis.set_major_locator(mpl.ticker.MaxNLocator(4))
         if zlabels:
             ax.set_zlabel(zlabels[i])
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title)
         ax.view_init(elev=28, azim=-130)
     if suptitle:
         fig.suptitle(suptitle)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.9 if suptitle else 0.95, wspace=0.12,
+                        hspace=0.2)
     return fig
 
 
@@ -70,7 +128,7 @@ def _t_label(sol) -> str:
 
 
 def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = "", axes: tuple[int, int] = (0, 1),
-                          fixed=None):
+                          fixed=None, limits: list | None = None):
     """V(., 0), mu(., 0) and the squared flow residual E_e^2 (eq. (flow_res)): the paper's Figures 1-3.
 
     Over Omega for a 2-D system; for n > 2 on the plane through Omega spanned by ``axes`` with the other
@@ -80,7 +138,7 @@ def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = "", axe
     v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2
     return surfaces(x1, x2, [v, u, e], [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0)$",
                                        rf"$E_e(x;\hat V_{{{T}}})^2$"], suptitle,
-                    axis_labels=(f"$x_{axes[0] + 1}$", f"$x_{axes[1] + 1}$"))
+                    axis_labels=(f"$x_{axes[0] + 1}$", f"$x_{axes[1] + 1}$"), limits=limits)
 
 
 def _reference_on(sol, pts, reference, which: str):
@@ -127,14 +185,14 @@ def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: st
 
 def loss_curve(history, title: str = ""):
     """Training loss against step (Adam, then L-BFGS, then Levenberg-Marquardt) on a log scale."""
-    fig, ax = plt.subplots(figsize=(5.5, 3.5))
+    fig, ax = plt.subplots(figsize=(5.5, 3.4))
     steps, losses, phases = np.array(history.step), np.array(history.loss), np.array(history.phase)
     labels = {"adam": "Adam", "lbfgs": "L-BFGS", "lm": "Levenberg-Marquardt"}
     for phase, label in labels.items():
         m = phases == phase
         if m.any():
             ax.semilogy(steps[m], losses[m], label=label, marker="." if m.sum() < 60 else None)
-    ax.set_xlabel("step (L-BFGS: function evaluations; LM: iterations)")
+    ax.set_xlabel("iteration (L-BFGS: function evaluations)")
     ax.set_ylabel("loss (MSE)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
@@ -149,7 +207,7 @@ def time_to_accuracy(traces: dict, targets: dict | None = None, title: str = "")
 
     ``traces``: label -> (seconds, E), e.g. from ``benchmarks/results/speed.json``; ``targets``: label -> an E
     drawn as a dashed horizontal line."""
-    fig, ax = plt.subplots(figsize=(7.0, 4.0))
+    fig, ax = plt.subplots(figsize=(WIDTH, 4.6))
     for label, (seconds, E) in traces.items():
         seconds, E = np.asarray(seconds, dtype=float), np.asarray(E, dtype=float)
         if seconds.shape != E.shape or seconds.ndim != 1:
@@ -161,7 +219,7 @@ def time_to_accuracy(traces: dict, targets: dict | None = None, title: str = "")
     ax.set_xlabel("training wall time (s)")
     ax.set_ylabel("E (infinite-horizon residual)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="lower left")  # the first seconds: no run has finished a check there
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)  # below: covers no curve
     if title:
         ax.set_title(title)
     fig.tight_layout()
@@ -175,21 +233,21 @@ def grouped_bars(values: dict, ylabel: str, title: str = "", log: bool = True):
         raise ValueError("nothing to plot: values is empty")
     bars = list(dict.fromkeys(k for group in values.values() for k in group))
     width = 0.8 / len(bars)
-    fig, ax = plt.subplots(figsize=(7.0, 3.6))
+    fig, ax = plt.subplots(figsize=(WIDTH, 3.6))
     for j, bar in enumerate(bars):
         xs = [i + (j - (len(bars) - 1) / 2) * width for i in range(len(values))]
         ys = [group.get(bar) for group in values.values()]
         ax.bar([x for x, y in zip(xs, ys) if y is not None], [y for y in ys if y is not None], width, label=bar)
         for x, y in zip(xs, ys):
             if y is None:
-                ax.annotate("none", (x, 0), xytext=(0, 3), textcoords="offset points", ha="center", fontsize=7,
+                ax.annotate("none", (x, 0), xytext=(0, 3), textcoords="offset points", ha="center", fontsize=10,
                             xycoords=("data", "axes fraction"))
-    ax.set_xticks(range(len(values)), list(values), fontsize=8)
+    ax.set_xticks(range(len(values)), list(values))
     if log:
         ax.set_yscale("log")
     ax.set_ylabel(ylabel)
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend()
     if title:
         ax.set_title(title)
     fig.tight_layout()

@@ -14,12 +14,16 @@ import html
 import io
 from typing import Callable, Sequence
 
+import struct
+
 import matplotlib.pyplot as plt
 
-__all__ = ["FrameExplorer", "explorer", "figure_png"]
+__all__ = ["FrameExplorer", "explorer", "figure_png", "png_width"]
+
+SCALE = 2  # frames are drawn at 2 x 100 dpi and displayed at 100 CSS px per inch: sharp on dense screens
 
 
-def figure_png(fig, dpi: int = 90) -> bytes:
+def figure_png(fig, dpi: int = 100 * SCALE) -> bytes:
     """PNG bytes of a figure, which is then closed."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight", metadata={"Software": None})
@@ -27,11 +31,18 @@ def figure_png(fig, dpi: int = 90) -> bytes:
     return buf.getvalue()
 
 
+def png_width(png: bytes) -> int:
+    """The width in pixels stored in a PNG's header."""
+    if png[:8] != b"\x89PNG\r\n\x1a\n":
+        raise ValueError("not a PNG image")
+    return struct.unpack(">I", png[16:20])[0]
+
+
 class FrameExplorer:
     """Precomputed frames, one per value, with a live (ipywidgets) and a static (HTML + JS) rendering."""
 
     def __init__(self, frames: Sequence[bytes], values: Sequence, label: str = "T", fmt: str = "{:g}",
-                 start: int = 0):
+                 start: int = 0, alt: str = "", scale: int = SCALE):
         if len(frames) != len(values) or not frames:
             raise ValueError(f"need one frame per value; got {len(frames)} frames for {len(values)} values")
         self.frames = list(frames)
@@ -39,6 +50,8 @@ class FrameExplorer:
         self.label = label
         self.fmt = fmt
         self.start = int(start)
+        self.alt = alt
+        self.scale = scale
 
     def _labels(self) -> list[str]:
         return [self.fmt.format(v) for v in self.values]
@@ -48,7 +61,8 @@ class FrameExplorer:
         import ipywidgets as w
 
         labels = self._labels()
-        image = w.Image(value=self.frames[self.start], format="png")
+        image = w.Image(value=self.frames[self.start], format="png",
+                        width=png_width(self.frames[self.start]) // self.scale)
         slider = w.SelectionSlider(options=list(zip(labels, range(len(labels)))), value=self.start,
                                    description=f"{self.label} =", continuous_update=True,
                                    layout=w.Layout(width="60%"))
@@ -61,9 +75,11 @@ class FrameExplorer:
         uid = f"pinnhjb-explorer-{digest}"
         srcs = [f"data:image/png;base64,{base64.b64encode(f).decode()}" for f in self.frames]
         labels = self._labels()
-        imgs = "".join(f'<img src="{s}" data-i="{i}" style="display:{"block" if i == self.start else "none"};'
-                       f'max-width:100%" alt="{html.escape(self.label)} = {html.escape(lab)}">'
-                       for i, (s, lab) in enumerate(zip(srcs, labels)))
+        alt = html.escape(self.alt + ", " if self.alt else "")
+        imgs = "".join(f'<img src="{s}" data-i="{i}" width="{png_width(f) // self.scale}" '
+                       f'style="display:{"block" if i == self.start else "none"};max-width:100%;height:auto" '
+                       f'alt="{alt}{html.escape(self.label)} = {html.escape(lab)}">'
+                       for i, (s, f, lab) in enumerate(zip(srcs, self.frames, labels)))
         label_js = ",".join(f'"{html.escape(lab)}"' for lab in labels)
         return (f'<div class="pinnhjb-explorer" id="{uid}">'
                 f'<label>{html.escape(self.label)} = <span class="pinnhjb-value">{html.escape(labels[self.start])}'
@@ -89,6 +105,14 @@ class FrameExplorer:
 
 
 def explorer(draw: Callable[[object], "plt.Figure"], values: Sequence, label: str = "T", fmt: str = "{:g}",
-             start: int = 0, dpi: int = 90) -> FrameExplorer:
-    """Draw ``draw(value)`` for every value once and return a :class:`FrameExplorer` over the frames."""
-    return FrameExplorer([figure_png(draw(v), dpi=dpi) for v in values], values, label, fmt, start)
+             start: int = 0, alt: str = "") -> FrameExplorer:
+    """Draw every frame once and return a :class:`FrameExplorer` over them.
+
+    * ``draw``: value -> matplotlib figure (closed once rendered); give every frame the same axis limits when
+      the frames are to be compared.
+    * ``values``: the slider's values, in order.
+    * ``label``, ``fmt``: the slider's name and how a value is printed.
+    * ``start``: the index shown first.
+    * ``alt``: what the figure shows, for readers who cannot see it (the value is appended).
+    """
+    return FrameExplorer([figure_png(draw(v)) for v in values], values, label, fmt, start, alt)
