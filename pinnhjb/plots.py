@@ -110,7 +110,7 @@ def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str 
         ax.set_ylabel(axis_labels[1], labelpad=-2)
         ax.tick_params(pad=0)
         for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
-            axis.set_major_locator(mpl.ticker.MaxNLocator(4))
+            axis.set_major_locator(mpl.ticker.MaxNLocator(4, steps=[1, 2, 2.5, 5, 10]))
         if zlabels:
             ax.set_zlabel(zlabels[i])
         ax.set_title(title)
