@@ -5,7 +5,10 @@ uses a different network, learning rate, decay and stopping threshold per exampl
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields, replace
+
+import numpy as np
 
 from .pinn import ACTIVATIONS
 
@@ -88,29 +91,61 @@ class TrainConfig:
     log_every: int = 25
 
     def __post_init__(self):
-        checks = {
-            "width": self.width >= 1, "depth": self.depth >= 1, "batch_size": self.batch_size >= 1,
-            "pool_size": self.pool_size >= 1, "adam_steps": self.adam_steps >= 0,
-            "lbfgs_steps": self.lbfgs_steps >= 0, "lr": self.lr > 0, "log_every": self.log_every >= 1,
-            "lm_steps": self.lm_steps >= 0, "lm_points": self.lm_points >= 1, "lm_damping": self.lm_damping > 0,
-            "lm_min_progress": self.lm_min_progress is None or self.lm_min_progress >= 1,
-            "lm_points_coarse": self.lm_points_coarse is None or self.lm_points_coarse >= 1,
-            "lm_stall_windows": self.lm_stall_windows >= 1,
-            "lr_decay": self.lr_decay >= 0, "lbfgs_points": self.lbfgs_points >= 1,
-            "n_flow": self.n_flow >= 1, "n_boundary": self.n_boundary >= 1, "n_origin": self.n_origin >= 1,
-            "lr_final_ratio": 0 <= self.lr_final_ratio <= 1,
-            "max_time": self.max_time is None or self.max_time > 0,
-            "stop_loss": self.stop_loss is None or self.stop_loss > 0,
-            "eval_points_per_dim": self.eval_points_per_dim is None or self.eval_points_per_dim >= 2,
-            "points_per_time": self.points_per_time is None or self.points_per_time >= 1,
-            "activation": self.activation in ACTIVATIONS,
-            "dtype": self.dtype in ("float32", "float64"),
-            "sampling": self.sampling in ("resample", "fixed"),
-            "schedule": self.schedule in ("cosine", "inverse_time", "constant"),
+        def integer(v, low, none=False):
+            if v is None:
+                return none
+            return not isinstance(v, bool) and isinstance(v, (int, np.integer)) and v >= low
+
+        def real(v, low=None, high=None, low_open=False, none=False, inf=False):
+            if v is None:
+                return none
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                return False
+            v = float(v)
+            if math.isnan(v) or (math.isinf(v) and not inf):
+                return False
+            if low is not None and (v <= low if low_open else v < low):
+                return False
+            return high is None or v <= high
+
+        checks = {  # field: (valid, what is expected)
+            "width": (integer(self.width, 1), "an integer >= 1"),
+            "depth": (integer(self.depth, 1), "an integer >= 1"),
+            "batch_size": (integer(self.batch_size, 1), "an integer >= 1"),
+            "pool_size": (integer(self.pool_size, 1), "an integer >= 1"),
+            "points_per_time": (integer(self.points_per_time, 1, none=True), "an integer >= 1 or None"),
+            "n_flow": (integer(self.n_flow, 1), "an integer >= 1"),
+            "n_boundary": (integer(self.n_boundary, 1), "an integer >= 1"),
+            "n_origin": (integer(self.n_origin, 1), "an integer >= 1"),
+            "adam_steps": (integer(self.adam_steps, 0), "an integer >= 0"),
+            "lbfgs_steps": (integer(self.lbfgs_steps, 0), "an integer >= 0"),
+            "lbfgs_points": (integer(self.lbfgs_points, 1), "an integer >= 1"),
+            "lm_steps": (integer(self.lm_steps, 0), "an integer >= 0"),
+            "lm_points": (integer(self.lm_points, 1), "an integer >= 1"),
+            "lm_points_coarse": (integer(self.lm_points_coarse, 1, none=True), "an integer >= 1 or None"),
+            "lm_stall_windows": (integer(self.lm_stall_windows, 1), "an integer >= 1"),
+            "eval_points_per_dim": (integer(self.eval_points_per_dim, 2, none=True), "an integer >= 2 or None"),
+            "log_every": (integer(self.log_every, 1), "an integer >= 1"),
+            "lr": (real(self.lr, 0, low_open=True), "a finite number > 0"),
+            "lr_final_ratio": (real(self.lr_final_ratio, 0, 1), "a number in [0, 1]"),
+            "lr_decay": (real(self.lr_decay, 0), "a finite number >= 0"),
+            "stop_loss": (real(self.stop_loss, 0, low_open=True, none=True), "a finite number > 0 or None"),
+            "max_time": (real(self.max_time, 0, low_open=True, none=True, inf=True), "a number of seconds > 0 or None"),
+            "lm_damping": (real(self.lm_damping, 0, low_open=True), "a finite number > 0"),
+            "lm_min_progress": (real(self.lm_min_progress, 1, none=True), "a finite number >= 1 or None"),
+            "ansatz": (isinstance(self.ansatz, bool), "True or False"),
+            "warm_start": (isinstance(self.warm_start, bool), "True or False"),
+            "activation": (isinstance(self.activation, str) and self.activation in ACTIVATIONS,
+                           f"one of {sorted(ACTIVATIONS)}"),
+            "dtype": (self.dtype in ("float32", "float64"), "'float32' or 'float64'"),
+            "sampling": (self.sampling in ("resample", "fixed"), "'resample' or 'fixed'"),
+            "schedule": (self.schedule in ("cosine", "inverse_time", "constant"),
+                         "'cosine', 'inverse_time' or 'constant'"),
         }
-        bad = [k for k, ok in checks.items() if not ok]
+        bad = [k for k, (ok, _) in checks.items() if not ok]
         if bad:
-            raise ValueError(f"invalid TrainConfig field(s) {bad}: " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad))
+            raise ValueError(f"invalid TrainConfig field(s) {bad}: " + "; ".join(
+                f"{k}={getattr(self, k)!r} (expected {checks[k][1]})" for k in bad))
         if self.lm_points_coarse is not None and self.lm_points_coarse >= self.lm_points:
             raise ValueError(f"lm_points_coarse={self.lm_points_coarse} must be fewer than lm_points={self.lm_points} "
                              "(the coarse level comes first); set lm_points_coarse=None to use lm_points throughout")
@@ -128,7 +163,10 @@ class TrainConfig:
         base = dict(PRESETS[name])
         if name == "paper":
             if system not in PAPER_SETTINGS:
-                raise KeyError(f"the paper preset exists for {sorted(PAPER_SETTINGS)}; got system={system!r}")
+                raise KeyError(f"the paper preset exists for {sorted(PAPER_SETTINGS)} only (the paper's Section 6 "
+                               f"sets network, learning rate and threshold per example); got system={system!r}: "
+                               f"borrow one example's settings with TrainConfig.preset('paper', system='pendulum'), "
+                               f"or use 'default'")
             base.update(PAPER_SETTINGS[system])
         base.update(overrides)
         return cls(**base)

@@ -33,7 +33,19 @@ from torch.func import jacrev, vmap
 
 Tensor = torch.Tensor
 
-__all__ = ["FlatParameters", "levenberg_marquardt", "LMResult"]
+__all__ = ["FlatParameters", "levenberg_marquardt", "LMResult", "DivergenceError"]
+
+
+class DivergenceError(FloatingPointError):
+    """Training produced a non-finite loss or step: raised by every optimiser (Adam, L-BFGS, Levenberg-Marquardt)
+    with the stage (``stage``, the progress label such as ``"pendulum T=0->1"``), the optimiser and the
+    iteration in its message and attributes, instead of returning an untrained network."""
+
+    def __init__(self, stage: str, optimiser: str, iteration: int, what: str, hint: str = ""):
+        self.stage, self.optimiser, self.iteration = stage, optimiser, iteration
+        hint = hint or ("check the scale of the system (f, g, Q, R: overflow?) and that f, g, Q are finite on "
+                        "the training box")
+        super().__init__(f"stage {stage}: {optimiser} diverged at iteration {iteration}: {what}; {hint}")
 
 
 class FlatParameters:
@@ -88,10 +100,10 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
     default ``vmap(jacrev(point_residual))`` (it must agree with it: see :mod:`pinnhjb.jacobian`).
     """
     schedule = [int(n) for n in points] if isinstance(points, Sequence) else [int(points)]
-    if (steps < 0 or not schedule or min(schedule) < 1 or not damping > 0 or window < 1 or stall_windows < 1
+    if (steps < 0 or not schedule or min(schedule) < 1 or not 0 < damping < math.inf or window < 1 or stall_windows < 1
             or any(b <= a for a, b in zip(schedule, schedule[1:]))):
         raise ValueError(f"need steps >= 0, points >= 1 (a schedule must grow), damping > 0, window >= 1, "
-                         f"stall_windows >= 1; got {steps}, {points}, {damping}, {window}, {stall_windows}")
+                         f"stall_windows >= 1 (damping finite); got {steps}, {points}, {damping}, {window}, {stall_windows}")
     start = time.perf_counter()
     theta = theta.detach().clone()
     P = theta.numel()
@@ -112,8 +124,12 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
         else:
             r, J = jacobian(theta, *batch)
         loss = (r @ r).item() / r.numel()
-        if not torch.isfinite(J).all() or not torch.isfinite(r).all():
-            raise FloatingPointError(f"{desc}: residual or Jacobian became non-finite at iteration {done}")
+        if not torch.isfinite(r).all():
+            raise DivergenceError(desc, "Levenberg-Marquardt", done + 1, "the residuals became non-finite")
+        if not torch.isfinite(J).all():
+            raise DivergenceError(desc, "Levenberg-Marquardt", done + 1, "the Jacobian became non-finite")
+        if not math.isfinite(loss):
+            raise DivergenceError(desc, "Levenberg-Marquardt", done + 1, f"the loss is {loss} (overflow)")
         dual = r.numel() < P  # solve in the smaller of the two spaces
         G = J @ J.T if dual else J.T @ J
         rhs = r if dual else J.T @ r
@@ -123,6 +139,8 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
             if info.item() == 0:
                 y = torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1)
                 delta = -(J.T @ y) if dual else -y
+                if not torch.isfinite(delta).all():
+                    raise DivergenceError(desc, "Levenberg-Marquardt", done + 1, "the step became non-finite")
                 r_new = residuals(theta + delta, *batch)
                 new = (r_new @ r_new).item() / r.numel()
                 if new < loss:  # accept, trust the quadratic model more

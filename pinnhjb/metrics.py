@@ -1,6 +1,10 @@
 """Checks of a learned value function (Section 5.1) and of its policy in closed loop.
 
 * :func:`infinite_horizon_residual` — E of eq. (IHJB_res): mean of E_e(x)^2 over points of Omega plus V(0)^2.
+  By default the points are a grid of ``points_per_dim**n`` points while that stays at most
+  :data:`GRID_MAX_POINTS` (every 1-, 2- and 3-D case of the book); above it (high n) E is a seeded Monte Carlo
+  mean over :data:`MC_SAMPLES` uniform points of Omega, reported with its standard error (``E_stderr``) and
+  sample size (``E_samples``), evaluated in batches so memory stays bounded in any dimension.
 * :func:`flow_residual_field` — E_e(x) of eq. (flow_res) on a grid, for plotting (the paper's Figures 1-3).
 * :func:`optimality_errors` — max and mean-square errors of V and mu against a known V*, mu*.
 * :func:`closed_loop` — simulate ``xdot = f(x) + g(x) mu(x)`` with a batched RK4 and accumulate the cost
@@ -11,6 +15,7 @@ float64 on the CPU (solution objects move them to their own device and precision
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -24,7 +29,13 @@ Tensor = torch.Tensor
 ValueFn = Callable[[Tensor], Tensor]
 
 __all__ = ["default_points_per_dim", "evaluation_grid", "infinite_horizon_residual", "flow_residual_field",
-           "optimality_errors", "policy_of", "closed_loop", "ClosedLoopResult", "quadratic_fields"]
+           "optimality_errors", "policy_of", "closed_loop", "ClosedLoopResult", "quadratic_fields",
+           "GRID_MAX_POINTS", "MC_SAMPLES", "uses_grid"]
+
+GRID_MAX_POINTS = 2**16  # 65536: 1001 points in 1-D, 101^2, 21^3, 9^4 and 9^5 grids all fit
+MC_SAMPLES = 2**15       # Monte Carlo sample size above the cap (standard error ~ 0.6% of the spread of E_e^2)
+MC_SEED = 0
+_BATCH = 16384
 
 
 def default_points_per_dim(n: int) -> int:
@@ -32,8 +43,39 @@ def default_points_per_dim(n: int) -> int:
     return {1: 1001, 2: 101, 3: 21}.get(n, 9)
 
 
+def _points_per_dim(system, points_per_dim) -> int:
+    if points_per_dim is None:
+        return default_points_per_dim(system.n)
+    if isinstance(points_per_dim, bool) or not isinstance(points_per_dim, (int, np.integer)) or points_per_dim < 2:
+        raise ValueError(f"points_per_dim must be an integer >= 2 (points per axis of the grid over Omega) or None "
+                         f"(the default for n={system.n}: {default_points_per_dim(system.n)}); got {points_per_dim!r}")
+    return int(points_per_dim)
+
+
+def uses_grid(system, points_per_dim: int | None = None) -> bool:
+    """Whether E is measured on the grid (``points_per_dim**n <= GRID_MAX_POINTS``) rather than by Monte Carlo."""
+    return _points_per_dim(system, points_per_dim) ** system.n <= GRID_MAX_POINTS
+
+
 def evaluation_grid(system, points_per_dim: int | None = None, dtype=torch.float64, device=None) -> Tensor:
-    return system.grid(points_per_dim or default_points_per_dim(system.n), dtype=dtype, device=device)
+    """The grid over Omega on which E is reported; refuses one above :data:`GRID_MAX_POINTS` points."""
+    ppd = _points_per_dim(system, points_per_dim)
+    if ppd ** system.n > GRID_MAX_POINTS:
+        raise ValueError(f"a grid of {ppd}^{system.n} points exceeds GRID_MAX_POINTS={GRID_MAX_POINTS}; E is then "
+                         f"measured by Monte Carlo (infinite_horizon_residual with points=None)")
+    return system.grid(ppd, dtype=dtype, device=device)
+
+
+def _monte_carlo_batches(system, samples: int = MC_SAMPLES, seed: int = MC_SEED, batch: int = _BATCH):
+    """Seeded uniform points of Omega, float64 on the CPU, in batches (the same points on every call)."""
+    gen = torch.Generator().manual_seed(seed)
+    lo = torch.as_tensor(system.domain[:, 0], dtype=torch.float64)
+    hi = torch.as_tensor(system.domain[:, 1], dtype=torch.float64)
+    done = 0
+    while done < samples:
+        k = min(batch, samples - done)
+        yield lo + (hi - lo) * torch.rand(k, system.n, generator=gen, dtype=torch.float64)
+        done += k
 
 
 def _chunks(x: Tensor, size: int = 16384):
@@ -55,8 +97,12 @@ def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None =
     """E = mean_i E_e(x_i)^2 + V(0)^2 (eq. (IHJB_res)) on ``points`` (default: a grid over Omega).
 
     Returns ``{"E", "E_flow", "E_boundary", "E_zero"}`` where ``E_zero`` is E of the trivial V = 0 on the
-    same points (mean Q^2): on small boxes E is only meaningful next to it.
+    same points (mean Q^2): on small boxes E is only meaningful next to it. When the grid would exceed
+    :data:`GRID_MAX_POINTS` points, the mean is a seeded Monte Carlo estimate over Omega and the result also
+    holds ``E_stderr`` (its standard error) and ``E_samples`` (the sample size).
     """
+    if points is None and not uses_grid(system, points_per_dim):
+        return _monte_carlo_residual(system, value_fn)
     if points is None:
         points = evaluation_grid(system, points_per_dim)
     e = flow_residual_field(system, value_fn, points)
@@ -66,6 +112,23 @@ def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None =
     flow = float((e**2).mean())
     boundary = float(v0.reshape(()) ** 2)
     return {"E": flow + boundary, "E_flow": flow, "E_boundary": boundary, "E_zero": float(e_zero)}
+
+
+def _monte_carlo_residual(system, value_fn: ValueFn, samples: int = MC_SAMPLES) -> dict:
+    total = total_sq = zero = 0.0
+    for xc in _monte_carlo_batches(system, samples):
+        e2 = flow_residual_field(system, value_fn, xc) ** 2
+        total += float(e2.sum())
+        total_sq += float((e2**2).sum())
+        with torch.no_grad():
+            zero += float((system.Q(xc) ** 2).sum())
+    with torch.no_grad():
+        v0 = value_fn(torch.zeros(1, system.n, dtype=torch.float64))
+    flow = total / samples
+    var = max(total_sq / samples - flow**2, 0.0) * samples / max(samples - 1, 1)
+    boundary = float(v0.reshape(()) ** 2)
+    return {"E": flow + boundary, "E_flow": flow, "E_boundary": boundary, "E_zero": zero / samples,
+            "E_stderr": math.sqrt(var / samples), "E_samples": samples}
 
 
 def policy_of(system, value_fn: ValueFn) -> Callable[[Tensor], Tensor]:
@@ -87,11 +150,12 @@ def optimality_errors(system, value_fn: ValueFn, points: Tensor | None = None,
     """
     if system.value_star is None or system.policy_star is None:
         raise ValueError(f"system '{system.name}' has no known V*/mu*; errors need a reference (see pinnhjb.reference)")
-    if points is None:
+    if points is None and uses_grid(system, points_per_dim):
         points = evaluation_grid(system, points_per_dim)
+    batches = _chunks(points) if points is not None else _monte_carlo_batches(system)
     mu = policy_of(system, value_fn)
     dv, du = [], []
-    for xc in _chunks(points):
+    for xc in batches:
         with torch.no_grad():
             dv.append(value_fn(xc).detach() - system.value_star(xc))
         du.append(mu(xc) - system.policy_star(xc))

@@ -122,13 +122,22 @@ class CallableTerminalCost(nn.Module):
 
 
 class ValueTerminalCost(nn.Module):
-    """phi(x) = V_T(x, 0) of a previous, frozen stage: the terminal cost of the horizon extension (eq. (HJBinc))."""
+    """phi(x) = V_T(x, 0) of a previous, frozen stage: the terminal cost of the horizon extension (eq. (HJBinc)).
+
+    The previous stage is held by reference, not registered as a submodule: a chain of K stages is then K flat
+    modules, not K nested ones, so moving, freezing or printing a stage never recurses through the whole chain
+    (and a chain of any length stays below Python's recursion limit). Its value is evaluated by
+    :meth:`FiniteHorizonValue.forward`, which walks the chain iteratively.
+    """
 
     def __init__(self, previous: "FiniteHorizonValue"):
         super().__init__()
-        self.previous = previous
+        object.__setattr__(self, "previous", previous)  # not a submodule: see the class docstring
         for p in self.previous.parameters():
             p.requires_grad_(False)
+
+    def extra_repr(self) -> str:
+        return f"previous stage of length {self.previous.horizon:g}"
 
     def forward(self, x: Tensor) -> Tensor:
         t = torch.zeros(x.shape[0], dtype=x.dtype, device=x.device)
@@ -175,10 +184,34 @@ class FiniteHorizonValue(_Scaled):
         s = (self.horizon - t) / self.horizon
         return s * (self.raw(x, t) - self.raw(torch.zeros_like(x), t))
 
+    def chain(self) -> list["FiniteHorizonValue"]:
+        """This stage and the earlier stages its value depends on (through terminal costs V_prev(., 0)), newest
+        first; a stage without the ansatz ends the chain (its value does not include its terminal cost)."""
+        models = [self]
+        while models[-1].ansatz and isinstance(models[-1].terminal_cost, ValueTerminalCost) \
+                and models[-1].terminal_cost.previous.ansatz:
+            models.append(models[-1].terminal_cost.previous)
+        return models
+
     def forward(self, x: Tensor, t: Tensor | float) -> Tensor:
         t = _broadcast_time(t, x)
-        out = self.correction(x, t)
-        return out + self.terminal_cost(x) if self.ansatz else out
+        if not self.ansatz:
+            return self.correction(x, t)
+        # v_K(x, t) = c_K(x, t) + (c_{K-1}(x, 0) + (... + (c_1(x, 0) + phi_1(x)))), summed innermost first as the
+        # nested calls did (the same operations in the same order: bit-identical), but in a loop: one network
+        # pass per stage and no recursion, whatever the chain's length.
+        models = self.chain()
+        value = models[-1].terminal_cost(x)
+        zero = None
+        for model in reversed(models):
+            if model is self:
+                tm = t
+            else:
+                if zero is None:
+                    zero = _broadcast_time(torch.zeros(x.shape[0], dtype=x.dtype, device=x.device), x)
+                tm = zero
+            value = model.correction(x, tm) + value
+        return value
 
     def correction_derivatives(self, x: Tensor, t: Tensor, origin_times: Tensor | None = None,
                                origin_index: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -8,6 +8,7 @@ steady-state PINN (the paper's T = infinity).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -125,9 +126,16 @@ class FiniteHorizonSolution(_ValueSolution):
         self.stages = list(stages)
         self.terminal_spec = terminal_spec
         self.interrupted = interrupted
+        self.tol = None  # set by solve_until: the E it asked for
 
     def _models(self):
         return [s.model for s in self.stages]
+
+    @property
+    def converged(self) -> bool | None:
+        """Whether E met the tolerance ``tol`` that :meth:`~pinnhjb.FiniteHorizonSolver.solve_until` asked for;
+        ``None`` when no tolerance was asked for (``solve``, ``extend``, a loaded checkpoint)."""
+        return None if self.tol is None else bool(self.metrics.get("E", math.inf) <= self.tol)
 
     @property
     def horizon(self) -> float:
@@ -164,10 +172,16 @@ class FiniteHorizonSolution(_ValueSolution):
         return FiniteHorizonSolution(self.system, self.config, self.stages[:k], self.terminal_spec)
 
     def summary(self) -> list[dict]:
-        """One row per stage: horizon reached, wall time, final loss and the stage's metrics."""
-        return [{"stage": i + 1, "horizon": s.end, "wall_time": s.history.wall_time,
+        """One row per stage: horizon reached, wall time, final loss and the stage's metrics; after
+        ``solve_until`` also ``converged`` (E <= tol at that stage: False in the last row when it stopped at
+        ``max_horizon`` short of ``tol``)."""
+        rows = [{"stage": i + 1, "horizon": s.end, "wall_time": s.history.wall_time,
                  "final_loss": s.history.final_loss, "stop_reason": s.history.stop_reason, **s.metrics}
                 for i, s in enumerate(self.stages)]
+        if self.tol is not None:
+            for row in rows:
+                row["converged"] = bool(row.get("E", math.inf) <= self.tol)
+        return rows
 
     def __repr__(self):
         e = self.metrics.get("E")
@@ -186,6 +200,7 @@ class SteadyStateSolution(_ValueSolution):
         self.history = history
         self.seed = seed
         self.metrics = metrics or {}
+        self.converged = None  # no tolerance is asked of the steady-state PINN (see FiniteHorizonSolution)
 
     def _models(self):
         return [self.model]

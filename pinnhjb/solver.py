@@ -5,26 +5,69 @@
 >>> sol = solver.solve(horizon=1.0)                    # Algorithm 1: V_1 on Omega x [0, 1]
 >>> sol = solver.extend(sol, to=4.0, step=1.0)          # Theorem 2: three more stages, each on [0, 1]
 >>> sol = solver.solve_until(tol=1e-4, step=1.0)        # extend until E <= tol (Section 5.1)
+
+Arguments are checked before any training starts (an error names the argument, the value and what is
+expected). Nothing trained is lost: when a later stage fails (e.g. :class:`~pinnhjb.gauss_newton.DivergenceError`),
+the exception carries the stages completed before it as ``exc.partial_solution`` (say so in its notes), and
+``callback`` has already seen each of them. A stage whose E is no better than that of V = 0 warns.
 """
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from typing import Callable
 
 import numpy as np
 import torch
 
-from .config import TrainConfig
+from .config import PAPER_SETTINGS, TrainConfig
 from .pinn import (CallableTerminalCost, FiniteHorizonValue, QuadraticTerminalCost, SteadyStateValue,
                    ValueTerminalCost, ZeroTerminalCost)
 from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
 from .training import DTYPES, resolve_device, train_finite_horizon, train_steady_state
 
-__all__ = ["FiniteHorizonSolver", "SteadyStateSolver", "make_terminal_cost"]
+__all__ = ["FiniteHorizonSolver", "SteadyStateSolver", "make_terminal_cost", "MAX_STAGES_PER_CALL"]
+
+MAX_STAGES_PER_CALL = 10000  # one extend() call; solve_until extends one stage at a time, so its chain is unbounded
 
 
-def make_terminal_cost(terminal_cost) -> torch.nn.Module:
+def _number(value, name: str, *, positive: bool = True, allow_inf: bool = False, expected: str = "") -> float:
+    """A real number (Python, numpy or a one-element tensor) as a float, or an error naming ``name``."""
+    if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.dtype.is_complex \
+            and value.dtype != torch.bool:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be {expected or 'a positive finite number'}; got {value!r} of type "
+                         f"{type(value).__name__} (not a number)")
+    value = float(value)
+    if math.isnan(value) or (math.isinf(value) and not allow_inf) or (positive and not value > 0):
+        raise ValueError(f"{name} must be {expected or 'a positive ' + ('number (inf allowed)' if allow_inf else 'finite number')}"
+                         f"; got {value!r}")
+    return value
+
+
+def _seed(seed) -> int:
+    if isinstance(seed, torch.Tensor) and seed.numel() == 1 and not seed.is_floating_point():
+        seed = seed.item()
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= int(seed) < 2**63 - 2**20:
+        raise ValueError(f"seed must be an integer in [0, 2**63 - 2**20) (stage k uses seed + k); got {seed!r}")
+    return int(seed)
+
+
+def _keep(exc: BaseException, solution) -> None:
+    """Attach the stages trained before ``exc`` to it (``exc.partial_solution``), once, with a note."""
+    if solution is None or getattr(exc, "partial_solution", None) is not None:
+        return
+    try:
+        exc.partial_solution = solution
+        exc.add_note(f"the {len(solution.stages)} stage(s) trained before this error (up to T={solution.horizon:g}) "
+                     f"are in this exception's .partial_solution (save them with pinnhjb.save)")
+    except (AttributeError, TypeError):  # an exception type that takes no attributes
+        pass
+
+
+def make_terminal_cost(terminal_cost, n: int | None = None) -> torch.nn.Module:
     """phi from ``None`` (zero), a (n, n) matrix P (x'Px), a torch callable, or a terminal-cost module."""
     if terminal_cost is None:
         return ZeroTerminalCost()
@@ -32,7 +75,17 @@ def make_terminal_cost(terminal_cost) -> torch.nn.Module:
         return terminal_cost
     if isinstance(terminal_cost, (np.ndarray, list, tuple)) or (isinstance(terminal_cost, torch.Tensor)
                                                                 and terminal_cost.ndim == 2):
-        return QuadraticTerminalCost(np.asarray(terminal_cost, dtype=float))
+        try:
+            P = np.asarray(terminal_cost.cpu() if isinstance(terminal_cost, torch.Tensor) else terminal_cost,
+                           dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"terminal_cost as a matrix P (phi = x'Px) must hold numbers; got {terminal_cost!r}") \
+                from exc
+        if n is not None and P.shape != (n, n):
+            raise ValueError(f"terminal_cost as a matrix P (phi = x'Px) must be ({n}, {n}); got shape {P.shape}")
+        if not np.all(np.isfinite(P)):
+            raise ValueError("terminal_cost matrix P contains NaN or infinite entries")
+        return QuadraticTerminalCost(P)
     if callable(terminal_cost):
         return CallableTerminalCost(terminal_cost)
     raise TypeError(f"terminal_cost must be None, a matrix, a callable or a module; got {type(terminal_cost).__name__}")
@@ -42,7 +95,13 @@ def _config(config, system) -> TrainConfig:
     if isinstance(config, TrainConfig):
         return config
     if isinstance(config, str):
-        return TrainConfig.preset(config, system=system.builder or system.name)
+        key = system.builder or system.name
+        if config == "paper" and key not in PAPER_SETTINGS:
+            raise ValueError(f"config='paper' is the paper's Section 6 recipe, whose network, learning rate and "
+                             f"threshold are set per example ({sorted(PAPER_SETTINGS)}); system '{system.name}' is "
+                             f"not one of them: use config='default' (ours), or borrow an example's settings with "
+                             f"config=TrainConfig.preset('paper', system='pendulum')")
+        return TrainConfig.preset(config, system=key)
     if isinstance(config, dict):
         return TrainConfig(**config)
     raise TypeError(f"config must be a TrainConfig, a preset name or a dict; got {type(config).__name__}")
@@ -50,11 +109,15 @@ def _config(config, system) -> TrainConfig:
 
 class _Solver:
     def __init__(self, system, config="default", seed: int = 0, device=None, progress: bool = True):
+        from .systems import ControlAffineSystem
+
+        if not isinstance(system, ControlAffineSystem):
+            raise TypeError(f"system must be a ControlAffineSystem (see pinnhjb.systems); got {type(system).__name__}")
         self.system = system
         self.config = _config(config, system)
-        self.seed = int(seed)
+        self.seed = _seed(seed)
         self.device = resolve_device(device)
-        self.progress = progress
+        self.progress = bool(progress)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -62,6 +125,14 @@ class _Solver:
 
     def _metrics(self, solution) -> dict:
         return solution.evaluate(self.config.eval_points_per_dim)
+
+    def _check_against_zero(self, metrics: dict, what: str):
+        """Warn when a trained stage is no better than V = 0 (E at least E of V = 0 on the same points)."""
+        E, E_zero = metrics.get("E"), metrics.get("E_zero")
+        if E is not None and E_zero is not None and not E < E_zero:
+            warnings.warn(f"{what}: E = {E:.3e} is no better than E of V = 0 ({E_zero:.3e}): the network learned "
+                          f"nothing useful (saturated? check the scale of Q and R, the horizon, lr or lm_damping)",
+                          RuntimeWarning, stacklevel=4)
 
 
 class FiniteHorizonSolver(_Solver):
@@ -91,15 +162,20 @@ class FiniteHorizonSolver(_Solver):
     def _finish(self, stages, terminal_spec, interrupted=False) -> FiniteHorizonSolution:
         sol = FiniteHorizonSolution(self.system, self.config, stages, terminal_spec, interrupted=interrupted)
         if not stages[-1].metrics:
-            stages[-1].metrics = self._metrics(sol)
+            try:
+                stages[-1].metrics = self._metrics(sol)
+            except Exception as exc:
+                _keep(exc, sol)  # the stage trained: keep it even if its evaluation fails
+                raise
+            self._check_against_zero(stages[-1].metrics, f"stage {len(stages)} ({self.system.name} "
+                                                         f"T={stages[-1].start:g}->{stages[-1].end:g})")
         return sol
 
     def solve(self, horizon: float, terminal_cost=None) -> FiniteHorizonSolution:
         """Algorithm 1: train v_T on Omega x [0, horizon] with terminal cost phi (default 0)."""
-        if not (isinstance(horizon, (int, float)) and math.isfinite(horizon) and horizon > 0):
-            raise ValueError(f"horizon must be a positive finite number; got {horizon!r}")
-        phi = make_terminal_cost(terminal_cost)
-        stage = self._train_stage(float(horizon), 0.0, phi.to(self.device, self.dtype), None, 0)
+        horizon = _number(horizon, "horizon")
+        phi = make_terminal_cost(terminal_cost, self.system.n)
+        stage = self._train_stage(horizon, 0.0, phi.to(self.device, self.dtype), None, 0)
         return self._finish([stage], phi.spec())
 
     def extend(self, solution: FiniteHorizonSolution, to: float, step: float | None = None,
@@ -117,11 +193,18 @@ class FiniteHorizonSolver(_Solver):
             raise ValueError(f"solution was trained on system {solution.system.spec()}, this solver has "
                              f"{self.system.spec()}")
         T = solution.horizon
+        to = _number(to, "to (the extension target)", expected=f"a finite number that must exceed the current "
+                                                                f"horizon T={T:g}")
         if not to > T:
-            raise ValueError(f"extension target {to} must exceed the current horizon {T}")
-        step = (to - T) if step is None else float(step)
-        if not step > 0:
-            raise ValueError(f"step must be positive; got {step}")
+            raise ValueError(f"extension target to={to:g} must exceed the current horizon T={T:g}")
+        step = (to - T) if step is None else _number(step, "step")
+        count = math.ceil((to - T) / step - 1e-9)
+        if count > MAX_STAGES_PER_CALL:
+            raise ValueError(f"step={step:g} from T={T:g} to {to:g} would train {count} stages, more than "
+                             f"MAX_STAGES_PER_CALL={MAX_STAGES_PER_CALL}; choose a larger step")
+        if solution.device != self.device or solution.dtype != self.dtype:
+            for s in solution.stages:  # as nn.Module.to did through the nested chain before
+                s.model.to(self.device, self.dtype)
         ends = list(np.arange(T + step, to, step)) + [to]
         ends = [e for e in ends if e > T + 1e-9]
         if len(ends) > 1 and ends[-1] - ends[-2] < 1e-9:
@@ -138,25 +221,52 @@ class FiniteHorizonSolver(_Solver):
                 if callback is not None:
                     callback(current)
         except KeyboardInterrupt:
-            warnings.warn(f"interrupted: returning the {len(stages)} completed stage(s) up to T={stages[-1].end:g}")
             if len(stages) > len(current.stages):
                 stages = stages[:len(current.stages)]
+            warnings.warn(f"interrupted: returning the {len(stages)} completed stage(s) up to T={stages[-1].end:g}")
             return FiniteHorizonSolution(self.system, self.config, stages, solution.terminal_spec, interrupted=True)
+        except Exception as exc:
+            _keep(exc, current if len(current.stages) > len(solution.stages) else None)
+            raise
         return current
 
     def solve_until(self, tol: float, step: float, first_horizon: float | None = None, max_horizon: float = 20.0,
                     terminal_cost=None, callback=None) -> FiniteHorizonSolution:
         """Solve at ``first_horizon`` (default ``step``), then extend by ``step`` until E <= ``tol`` or
         ``max_horizon`` is reached (the horizon check of Section 5.1). The per-stage report is
-        ``solution.summary()``; ``solution.converged`` says whether E met ``tol``."""
-        if not tol > 0:
-            raise ValueError(f"tol must be positive; got {tol}")
-        sol = self.solve(first_horizon or step, terminal_cost)
+        ``solution.summary()``; ``solution.converged`` says whether E met ``tol`` (when it did not by
+        ``max_horizon``, a warning says so; ``max_horizon=inf`` extends until it does).
+
+        Choosing ``tol``: E (eq. (IHJB_res)) is the mean square of the steady-state HJB residual over a grid on
+        Omega (``config.eval_points_per_dim`` points per axis; a seeded Monte Carlo sample in high dimension,
+        see :mod:`pinnhjb.metrics`), in the units of Q squared. Judge it against ``E_zero`` (E of V = 0 on the same
+        points, in every row of ``summary()``): a ``tol`` of 1e-4 to 1e-6 times ``E_zero`` asks for a residual
+        of about 1% to 0.1% of Q's.
+        """
+        tol = _number(tol, "tol")
+        step = _number(step, "step")
+        first = step if first_horizon is None else _number(first_horizon, "first_horizon")
+        max_horizon = _number(max_horizon, "max_horizon", allow_inf=True)
+        if first > max_horizon + 1e-9:
+            raise ValueError(f"the first horizon ({'step' if first_horizon is None else 'first_horizon'}={first:g}) "
+                             f"exceeds max_horizon={max_horizon:g}; choose max_horizon >= {first:g}")
+        if callback is not None and not callable(callback):
+            raise TypeError(f"callback must be callable or None; got {type(callback).__name__}")
+        sol = self.solve(first, terminal_cost)
         if callback is not None:
             callback(sol)
         while sol.metrics["E"] > tol and sol.horizon + 1e-9 < max_horizon and not sol.interrupted:
-            sol = self.extend(sol, to=min(sol.horizon + step, max_horizon), callback=callback)
-        sol.converged = sol.metrics["E"] <= tol
+            try:
+                sol = self.extend(sol, to=min(sol.horizon + step, max_horizon), callback=callback)
+            except Exception as exc:
+                _keep(exc, sol)
+                raise
+        sol.tol = tol
+        if not sol.converged and not sol.interrupted:
+            warnings.warn(f"solve_until stopped at max_horizon={max_horizon:g} without meeting tol={tol:g}: "
+                          f"E = {sol.metrics['E']:.3e} at T={sol.horizon:g} (converged=False); raise max_horizon, "
+                          f"or check tol against E_zero = {sol.metrics.get('E_zero', float('nan')):.3e}",
+                          RuntimeWarning, stacklevel=2)
         return sol
 
 
@@ -175,4 +285,5 @@ class SteadyStateSolver(_Solver):
             p.requires_grad_(False)
         sol = SteadyStateSolution(self.system, cfg, model.eval(), history, self.seed)
         sol.metrics = self._metrics(sol)
+        self._check_against_zero(sol.metrics, f"{self.system.name} steady state")
         return sol

@@ -4,15 +4,19 @@ A :class:`ControlAffineSystem` holds batched torch callables ``f: (N,n) -> (N,n)
 ``g: (N,n) -> (N,n,m)`` and ``Q: (N,n) -> (N,)``, the control weight ``R`` (m x m), the
 approximation set ``Omega`` (a box, where results are judged), the training box, and optionally
 the known optimal value ``V*`` and policy ``mu*``. Construction probes every function with a
-small batch and fails with a message naming the function and the shape it returned.
+small batch and fails with a message naming the function and the shape it returned, checks that f, g and Q
+are finite on a larger probe of the training box (and f(0) = 0, Q(0) = 0), and warns when Omega does not
+contain the origin or the training box does not contain Omega. :meth:`ControlAffineSystem.linearize` gives
+the linearisation (A, B, Q) at the origin.
 
 Built-ins reproduce the paper's Section 6 with its constants: :func:`pendulum`, :func:`quartic`
 (with the erratum on its state cost, see there), :func:`third_order`, and :func:`linear_quadratic`.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from typing import Any, Callable, NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -22,6 +26,7 @@ BatchFn = Callable[[Tensor], Tensor]
 
 __all__ = [
     "ControlAffineSystem",
+    "Linearization",
     "pendulum",
     "quartic",
     "third_order",
@@ -31,8 +36,19 @@ __all__ = [
 ]
 
 
+class Linearization(NamedTuple):
+    """xdot ~ A x + B u and Q(x) ~ x' Q x near the origin (A = df/dx(0), B = g(0), Q = Hessian of Q at 0 / 2)."""
+
+    A: np.ndarray
+    B: np.ndarray
+    Q: np.ndarray
+
+
 def _as_box(box, n: int | None, what: str) -> np.ndarray:
-    arr = np.asarray(box, dtype=float)
+    try:
+        arr = np.asarray(box, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what} must be a box of numbers, rows [low, high]; got {box!r}") from exc
     if arr.ndim == 1 and arr.shape == (2,) and n is not None:
         arr = np.tile(arr, (n, 1))
     if arr.ndim != 2 or arr.shape[1] != 2:
@@ -75,12 +91,25 @@ class ControlAffineSystem:
     m: int = field(init=False)
 
     def __post_init__(self):
-        dom = np.asarray(self.domain, dtype=float)
-        n_guess = dom.shape[0] if dom.ndim == 2 else 1
-        dom = _as_box(self.domain, n_guess, "domain (Omega)")
+        if not isinstance(self.name, str) or not self.name:
+            raise TypeError(f"name must be a non-empty string; got {self.name!r}")
+        for key in ("f", "g", "Q"):
+            if not callable(getattr(self, key)):
+                raise TypeError(f"system '{self.name}': {key} must be a batched torch callable; got "
+                                f"{type(getattr(self, key)).__name__}")
+        try:
+            flat = np.ndim(self.domain) == 1
+        except ValueError:  # ragged rows: _as_box says so
+            flat = False
+        dom = _as_box(self.domain, 1 if flat else None, "domain (Omega)")
+        if flat:
+            object.__setattr__(self, "_flat_domain", True)  # n = 1 taken from a flat [low, high]: see _hint
         n = dom.shape[0]
         train = _as_box(dom if self.train_domain is None else self.train_domain, n, "train_domain")
-        R = np.atleast_2d(np.asarray(self.R, dtype=float))
+        try:
+            R = np.atleast_2d(np.asarray(self.R, dtype=float))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"R must be a square (m, m) matrix of numbers; got {self.R!r}") from exc
         if R.ndim != 2 or R.shape[0] != R.shape[1]:
             raise ValueError(f"R must be a square (m, m) matrix; got shape {R.shape}")
         if not np.all(np.isfinite(R)):
@@ -97,8 +126,15 @@ class ControlAffineSystem:
         object.__setattr__(self, "n", n)
         object.__setattr__(self, "m", m)
         self._check_functions()
+        self._check_boxes()
 
     # ------------------------------------------------------------------ validation
+    def _hint(self) -> str:
+        if getattr(self, "_flat_domain", False):
+            return (f" (the state dimension n=1 was taken from the flat domain {self.domain[0].tolist()}; for an "
+                    f"n-dimensional system give domain as n rows, e.g. [[-1, 1]] * n)")
+        return ""
+
     def _check_functions(self):
         n, m = self.n, self.m
         gen = torch.Generator().manual_seed(0)
@@ -113,25 +149,68 @@ class ControlAffineSystem:
             try:
                 out = fn(probe)
             except Exception as exc:  # noqa: BLE001 - re-raised with context
-                raise ValueError(f"system '{self.name}': {key}(x) failed on a probe batch x of shape (5, {n}): {exc}") from exc
+                raise ValueError(f"system '{self.name}': {key}(x) failed on a probe batch x of shape (5, {n}): "
+                                 f"{exc}{self._hint()}") from exc
             if not isinstance(out, torch.Tensor):
                 raise TypeError(f"system '{self.name}': {key}(x) must return a torch.Tensor; got {type(out).__name__}")
+            if key == "g" and out.ndim == 3 and out.shape[:2] == (5, n) and out.shape[2] != m:
+                raise ValueError(f"system '{self.name}': R is {m} x {m} but g(x) has m={out.shape[2]} columns "
+                                 f"(shape {tuple(out.shape)} for x of shape (5, {n})); R must be m x m with m the "
+                                 f"number of inputs, g's last dimension")
             if tuple(out.shape) != shape:
                 raise ValueError(
                     f"system '{self.name}': {key}(x) returned shape {tuple(out.shape)} for x of shape (5, {n}); "
-                    f"expected {shape}"
+                    f"expected {shape}{self._hint()}"
                 )
             if not torch.all(torch.isfinite(out)):
                 raise ValueError(f"system '{self.name}': {key}(x) returned NaN or inf on a probe batch")
         zero = torch.zeros(1, n, dtype=torch.float64)
         f0 = self.f(zero)
-        if f0.abs().max() > 1e-10:
+        if not f0.abs().max() <= 1e-10:  # NaN fails too
             raise ValueError(f"system '{self.name}': f(0) must be 0 (the origin is an equilibrium); got {f0.tolist()}")
         q0 = self.Q(zero)
-        if q0.abs().max() > 1e-10:
+        if not q0.abs().max() <= 1e-10:
             raise ValueError(f"system '{self.name}': Q(0) must be 0 (Q positive definite); got {q0.item()}")
         if torch.any(self.Q(probe) < 0):
             raise ValueError(f"system '{self.name}': Q(x) is negative on a probe point; Q must be positive definite")
+        self.check_finite(self.sample(512, torch.Generator().manual_seed(1), dtype=torch.float64), "a probe of "
+                          "512 states of the training box")
+
+    def check_finite(self, x: Tensor, where: str):
+        """Raise a ValueError naming the function and a state where f, g or Q is NaN or infinite on ``x``."""
+        with torch.no_grad():
+            for key in ("f", "g", "Q"):
+                out = getattr(self, key)(x)
+                bad = ~torch.isfinite(out.reshape(out.shape[0], -1)).all(-1)
+                if torch.any(bad):
+                    first = x[bad][0].detach().cpu().tolist()
+                    raise ValueError(f"system '{self.name}': {key}(x) is NaN or infinite at {int(bad.sum())} of "
+                                     f"{x.shape[0]} states of {where}, e.g. x = {first}; f, g, Q must be finite on "
+                                     f"the whole training box {self.train_domain.tolist()}")
+
+    def _check_boxes(self):
+        dom, train = self.domain, self.train_domain
+        if np.any(dom[:, 0] > 0) or np.any(dom[:, 1] < 0):
+            warnings.warn(f"system '{self.name}': Omega {dom.tolist()} does not contain the origin, the equilibrium "
+                          f"the value function is anchored at (V(0) = 0)", UserWarning, stacklevel=4)
+        if np.any(train[:, 0] > dom[:, 0]) or np.any(train[:, 1] < dom[:, 1]):
+            warnings.warn(f"system '{self.name}': the training box {train.tolist()} does not contain Omega "
+                          f"{dom.tolist()}; E and the errors are measured on Omega, partly outside what was trained "
+                          f"(usually the training box is Omega or larger)", UserWarning, stacklevel=4)
+
+    def linearize(self) -> Linearization:
+        """The linearisation at the origin: ``A = df/dx(0)`` (n, n), ``B = g(0)`` (n, m) and ``Q`` (n, n) with
+        Q(x) ~ x'Qx (half the Hessian of Q at 0), as numpy arrays (by autograd, float64 on the CPU); R is
+        ``self.R``. With :func:`pinnhjb.lq.care` it gives the LQR value x'Px of the linearised problem."""
+        zero = torch.zeros(self.n, dtype=torch.float64)
+        try:
+            A = torch.autograd.functional.jacobian(lambda z: self.f(z[None])[0], zero)
+            H = torch.autograd.functional.hessian(lambda z: self.Q(z[None])[0], zero)
+        except Exception as exc:  # noqa: BLE001 - re-raised with context
+            raise ValueError(f"system '{self.name}': linearize() differentiates f and Q by autograd, which failed: "
+                             f"{exc}") from exc
+        B = self.g(zero[None])[0]
+        return Linearization(A.detach().numpy().copy(), B.detach().numpy().copy(), 0.5 * H.detach().numpy())
 
     # ------------------------------------------------------------------ core operators
     def R_tensor(self, like: Tensor) -> Tensor:
@@ -207,12 +286,21 @@ class ControlAffineSystem:
 
 # ====================================================================== built-in systems
 
+def _positive(value, name: str, system: str) -> float:
+    """A built-in's scalar parameter as a positive finite float, or a ValueError naming it."""
+    if isinstance(value, (bool, str)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not 0 < float(value) < np.inf:
+        raise ValueError(f"{system}: parameter {name} must be a positive finite number; got {value!r}")
+    return float(value)
+
+
 def pendulum(R: float = 1.0) -> ControlAffineSystem:
     """Torsional pendulum of Section 6.1: M = 1/3 kg, l = 2/3 m, J = 4/3 M l^2, f_d = 0.2, g = 9.8.
 
     f(x) = [x2, (-M g l sin x1 - f_d x2)/J], g(x) = [0, 1/J]', Q(x) = x1^2 + x2^2, R = 1,
     Omega = [-1, 1]^2, trained on [-1.5, 1.5]^2 as in the paper.
     """
+    R = _positive(R, "R", "pendulum")
     M, l, fd, grav = 1.0 / 3.0, 2.0 / 3.0, 0.2, 9.8
     J = 4.0 / 3.0 * M * l**2
 
@@ -284,6 +372,7 @@ def third_order(R: float = 1.0) -> ControlAffineSystem:
     The paper does not state an enlarged training set for this case; we train on [-0.25, 0.25]^3
     (the same 1.25x margin as the quartic system) and judge on Omega.
     """
+    R = _positive(R, "R", "third_order")
     K, C, a, b = 0.05, 3.5, 5.5, 4.0
 
     def f(x):
@@ -304,8 +393,17 @@ def third_order(R: float = 1.0) -> ControlAffineSystem:
 
 def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") -> ControlAffineSystem:
     """Linear system xdot = A x + B u with cost x'Qx + u'Ru; V*(x) = x'Px with P the stabilizing CARE
-    solution (scipy), mu*(x) = -R^{-1} B' P x."""
+    solution (scipy), mu*(x) = -R^{-1} B' P x.
+
+    ``train_domain`` defaults, like the built-ins', to a box larger than Omega: Omega enlarged by 25% about its
+    centre (the quartic and third-order systems' margin), so that E is judged inside what was trained; pass
+    ``train_domain=domain`` to train on Omega itself."""
     from . import lq  # local import: lq is numpy/scipy only
+
+    domain = _as_box(domain, np.atleast_2d(np.asarray(A, dtype=float)).shape[0], "domain (Omega)")
+    if train_domain is None:
+        centre, half = domain.mean(axis=1), (domain[:, 1] - domain[:, 0]) / 2
+        train_domain = np.stack([centre - 1.25 * half, centre + 1.25 * half], axis=1)
 
     A = np.atleast_2d(np.asarray(A, dtype=float))
     B = np.asarray(B, dtype=float)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import torch
@@ -19,9 +20,9 @@ from torch.func import functional_call, grad
 from tqdm.auto import tqdm
 
 from .config import TrainConfig
-from .gauss_newton import FlatParameters, levenberg_marquardt
+from .gauss_newton import DivergenceError, FlatParameters, levenberg_marquardt
 from .jacobian import residual_jacobian
-from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
+from .pinn import FiniteHorizonValue, SteadyStateValue, ValueTerminalCost, gradient
 
 Tensor = torch.Tensor
 
@@ -70,6 +71,14 @@ class TrainHistory:
 
 # ---------------------------------------------------------------------- cached data
 
+def _check_finite(values: Tensor, x: Tensor, what: str, hint: str):
+    """Before training: a ValueError naming ``what`` and a state where ``values`` (one row per state) is not finite."""
+    bad = ~torch.isfinite(values.reshape(values.shape[0], -1)).all(-1)
+    if torch.any(bad):
+        raise ValueError(f"{what} is NaN or infinite at {int(bad.sum())} of {x.shape[0]} training states, e.g. "
+                         f"x = {x[bad][0].detach().cpu().tolist()}; {hint}")
+
+
 class _Data:
     """States with cached f(x), g(x), Q(x), phi(x), grad phi(x); indexed to form batches."""
 
@@ -79,7 +88,12 @@ class _Data:
             self.fx = system.f(x)
             self.gx = system.g(x)
             self.qx = system.Q(x)
+        for key, out in (("f", self.fx), ("g", self.gx), ("Q", self.qx)):
+            _check_finite(out, x, f"system '{system.name}': {key}(x)",
+                          f"f, g, Q must be finite on the whole training box {system.train_domain.tolist()}")
         self.phi = self.dphi = None
+        if isinstance(terminal, ValueTerminalCost):  # a long chain: bound the autograd graph held per chunk
+            chunk = max(512, chunk * 16 // max(16, len(terminal.previous.chain())))
         if terminal is not None:
             phis, grads = [], []
             for xc in torch.split(x, chunk):
@@ -92,6 +106,9 @@ class _Data:
                 phis.append(v.detach())
             self.phi = torch.cat(phis)
             self.dphi = torch.cat(grads) if grads else None
+            _check_finite(self.phi, x, "the terminal cost phi(x)", "check the terminal cost (or the previous stage)")
+            if self.dphi is not None:
+                _check_finite(self.dphi, x, "the gradient of the terminal cost phi(x)", "check the terminal cost")
 
     def __len__(self):
         return self.x.shape[0]
@@ -246,7 +263,9 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         opt.zero_grad(set_to_none=True)
         loss = batch_loss(batch)
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"{desc}: loss became {loss.item()} at Adam step {step}; lower lr or check the system")
+            raise DivergenceError(desc, "Adam", step + 1, f"the loss is {loss.item()}",
+                                  "lower lr, or check the scale of the system (f, g, Q, R) and that f, g, Q are "
+                                  "finite on the training box")
         loss.backward()
         opt.step()
         sched.step()
@@ -294,6 +313,8 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
             nonlocal evals
             lbfgs.zero_grad(set_to_none=True)
             loss = batch_loss(batch)
+            if evals == 0 and not torch.isfinite(loss):  # at the starting point: not a line-search overshoot
+                raise DivergenceError(desc, "L-BFGS", 1, f"the loss is {loss.item()} at its starting point")
             loss.backward()
             evals += 1
             if evals % config.log_every == 0:
@@ -310,6 +331,10 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
                 for p, b in zip(params, before):
                     p.copy_(b)
             final = batch_loss(batch)
+            if not torch.isfinite(final):
+                raise DivergenceError(desc, "L-BFGS", evals, f"the loss is {final.item()}")
+            warnings.warn(f"stage {desc}: L-BFGS diverged (non-finite loss after {evals} evaluations); kept the "
+                          f"weights from before L-BFGS (loss {final.item():.3e})", RuntimeWarning, stacklevel=2)
         hist.final_loss = final.item()
     else:
         hist.final_loss = last

@@ -210,9 +210,9 @@ def test_extend_rejects_bad_targets(pendulum, base):
         s.extend(base, to=0.2)
     with pytest.raises(ValueError, match="must exceed"):
         s.extend(base, to=float("nan"))
-    with pytest.raises(ValueError, match="step must be positive"):
+    with pytest.raises(ValueError, match="step must be a positive finite number"):
         s.extend(base, to=1.0, step=0.0)
-    with pytest.raises(ValueError, match="step must be positive"):
+    with pytest.raises(ValueError, match="step must be a positive finite number"):
         s.extend(base, to=1.0, step=-0.5)
     with pytest.raises(TypeError):
         s.extend("not a solution", to=1.0)
@@ -259,7 +259,7 @@ def test_solve_until_stops_at_max_horizon(pendulum):
     assert sol.horizons == pytest.approx([0.5, 1.0, 1.2])
     assert horizons == pytest.approx([0.5, 1.0, 1.2])
     assert sol.converged is False
-    with pytest.raises(ValueError, match="tol must be positive"):
+    with pytest.raises(ValueError, match="tol must be a positive finite number"):
         solver(system=pendulum).solve_until(tol=0.0, step=0.5)
 
 
