@@ -6,15 +6,29 @@ config / training (Algorithm 1) · gauss_newton (Levenberg-Marquardt, our optimi
 solver (solve, extend = Theorem 2, solve_until, steady-state baseline) · metrics (E, errors, closed loop) ·
 storage (checkpoints with provenance).
 """
+import importlib as _importlib
+
 from . import lq, metrics, systems
 from .config import TrainConfig
+from .gauss_newton import DivergenceError
 from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
 from .solver import FiniteHorizonSolver, SteadyStateSolver
-from .storage import load, save
+from .storage import CheckpointError, load, save
 from .systems import ControlAffineSystem, get_system
 
 __version__ = "0.1.0"
 
-__all__ = ["systems", "lq", "metrics", "TrainConfig", "FiniteHorizonSolver", "SteadyStateSolver",
+__all__ = ["systems", "lq", "metrics", "reference", "TrainConfig", "FiniteHorizonSolver", "SteadyStateSolver",
            "FiniteHorizonSolution", "SteadyStateSolution", "Stage", "ControlAffineSystem", "get_system",
-           "save", "load", "__version__"]
+           "save", "load", "CheckpointError", "DivergenceError", "__version__"]
+
+# Submodules imported on first use (``ph.reference`` works after ``import pinnhjb``), so that importing the
+# package stays cheap: the reference solver, the reproduction, the plots and widgets.
+_LAZY = ("reference", "reproduce", "theorem3", "plots", "widgets", "gauss_newton", "jacobian", "pinn", "training",
+         "solver", "solution", "storage", "config", "cli")
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return _importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'pinnhjb' has no attribute {name!r}")

@@ -197,20 +197,24 @@ class FiniteHorizonValue(_Scaled):
         t = _broadcast_time(t, x)
         if not self.ansatz:
             return self.correction(x, t)
-        # v_K(x, t) = c_K(x, t) + (c_{K-1}(x, 0) + (... + (c_1(x, 0) + phi_1(x)))), summed innermost first as the
-        # nested calls did (the same operations in the same order: bit-identical), but in a loop: one network
-        # pass per stage and no recursion, whatever the chain's length.
+        # v_K(x, t) = c_K(x, t) + (c_{K-1}(x, 0) + (... + (c_1(x, 0) + phi_1(x)))): the corrections newest first,
+        # then phi_1, then the sums innermost first, as the nested calls did (the same operations created in the
+        # same order, so values and autograd's gradients are bit-identical), but in a loop: one network pass per
+        # stage and no recursion, whatever the chain's length.
         models = self.chain()
-        value = models[-1].terminal_cost(x)
         zero = None
-        for model in reversed(models):
+        corrections = []
+        for model in models:
             if model is self:
                 tm = t
             else:
                 if zero is None:
                     zero = _broadcast_time(torch.zeros(x.shape[0], dtype=x.dtype, device=x.device), x)
                 tm = zero
-            value = model.correction(x, tm) + value
+            corrections.append(model.correction(x, tm))
+        value = models[-1].terminal_cost(x)
+        for c in reversed(corrections):
+            value = c + value
         return value
 
     def correction_derivatives(self, x: Tensor, t: Tensor, origin_times: Tensor | None = None,

@@ -27,6 +27,8 @@ BatchFn = Callable[[Tensor], Tensor]
 __all__ = [
     "ControlAffineSystem",
     "Linearization",
+    "fingerprint_difference",
+    "fingerprint_summary",
     "pendulum",
     "quartic",
     "third_order",
@@ -162,8 +164,10 @@ class ControlAffineSystem:
                     f"system '{self.name}': {key}(x) returned shape {tuple(out.shape)} for x of shape (5, {n}); "
                     f"expected {shape}{self._hint()}"
                 )
-            if not torch.all(torch.isfinite(out)):
-                raise ValueError(f"system '{self.name}': {key}(x) returned NaN or inf on a probe batch")
+            bad = ~torch.isfinite(out.reshape(5, -1)).all(-1)
+            if torch.any(bad):
+                raise ValueError(f"system '{self.name}': {key}(x) is NaN or infinite at {int(bad.sum())} of 5 states "
+                                 f"of a probe batch, e.g. x = {probe[bad][0].tolist()}")
         zero = torch.zeros(1, n, dtype=torch.float64)
         f0 = self.f(zero)
         if not f0.abs().max() <= 1e-10:  # NaN fails too
@@ -274,6 +278,18 @@ class ControlAffineSystem:
         u = torch.rand(count, self.n, generator=generator, dtype=dtype, device=generator.device)
         return lo + (hi - lo) * u.to(device)
 
+    def fingerprint(self) -> dict:
+        """What identifies this system in a checkpoint: name, n, m, R, Omega, the training box, and f, g, Q on
+        :data:`FINGERPRINT_PROBES` fixed states of Omega (float64, CPU), as plain lists. See
+        :func:`fingerprint_difference`."""
+        u = np.random.default_rng(20261201).uniform(-1.0, 1.0, (FINGERPRINT_PROBES, self.n))
+        centre, half = self.domain.mean(axis=1), (self.domain[:, 1] - self.domain[:, 0]) / 2
+        x = torch.as_tensor(centre + half * u, dtype=torch.float64)
+        with torch.no_grad():
+            values = {k: getattr(self, k)(x).detach().cpu().double().numpy().tolist() for k in ("f", "g", "Q")}
+        return {"name": self.name, "n": self.n, "m": self.m, "R": self.R.tolist(), "domain": self.domain.tolist(),
+                "train_domain": self.train_domain.tolist(), "probes": x.numpy().tolist(), **values}
+
     def spec(self) -> dict:
         """What storage needs to rebuild this system: its registry name and parameters."""
         return {"name": self.name, "builder": self.builder,
@@ -282,6 +298,41 @@ class ControlAffineSystem:
     def __repr__(self):
         return (f"ControlAffineSystem(name={self.name!r}, n={self.n}, m={self.m}, R={self.R.tolist()}, "
                 f"domain={self.domain.tolist()}, known V*={self.value_star is not None})")
+
+
+# ====================================================================== fingerprints
+
+FINGERPRINT_PROBES = 8
+
+
+def fingerprint_difference(stored: dict, current: dict, rtol: float = 1e-7) -> list[str]:
+    """The fields in which two fingerprints differ (empty when they match); f, g, Q to relative ``rtol`` (the
+    same functions evaluated by another CPU or BLAS agree to rounding)."""
+    diffs = [k for k in ("name", "n", "m") if stored.get(k) != current.get(k)]
+    if diffs:
+        return diffs
+    for key in ("R", "domain", "train_domain", "probes", "f", "g", "Q"):
+        a, b = np.asarray(stored.get(key), dtype=float), np.asarray(current.get(key), dtype=float)
+        tight = key in ("R", "domain", "train_domain", "probes")
+        scale = max(1.0, float(np.max(np.abs(a)))) if a.size else 1.0
+        if a.shape != b.shape or not np.allclose(a, b, rtol=1e-12 if tight else rtol,
+                                                 atol=1e-12 * scale if tight else rtol * 1e-3 * scale):
+            diffs.append(key)
+    return diffs
+
+
+def fingerprint_summary(fp: dict) -> str:
+    """A one-line account of a fingerprint: name, n, m, R, boxes, and a digest of f, g, Q on the probes."""
+    import hashlib
+
+    def digest(key):
+        arr = np.asarray(fp.get(key), dtype=float)
+        text = np.array2string(arr.ravel(), precision=6, separator=",", threshold=10**6)
+        return f"{key}:{hashlib.sha1(text.encode()).hexdigest()[:8]}"
+
+    return (f"{{name={fp.get('name')!r}, n={fp.get('n')}, m={fp.get('m')}, R={fp.get('R')}, "
+            f"domain={fp.get('domain')}, train_domain={fp.get('train_domain')}, "
+            f"{', '.join(digest(k) for k in ('f', 'g', 'Q'))}}}")
 
 
 # ====================================================================== built-in systems
