@@ -103,7 +103,8 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
     if (steps < 0 or not schedule or min(schedule) < 1 or not 0 < damping < math.inf or window < 1 or stall_windows < 1
             or any(b <= a for a, b in zip(schedule, schedule[1:]))):
         raise ValueError(f"need steps >= 0, points >= 1 (a schedule must grow), damping > 0, window >= 1, "
-                         f"stall_windows >= 1 (damping finite); got {steps}, {points}, {damping}, {window}, {stall_windows}")
+                         f"stall_windows >= 1 (damping finite); got {steps}, {points}, {damping}, {window}, "
+                         f"{stall_windows}")
     start = time.perf_counter()
     theta = theta.detach().clone()
     P = theta.numel()

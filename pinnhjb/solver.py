@@ -42,8 +42,8 @@ def _number(value, name: str, *, positive: bool = True, allow_inf: bool = False,
                          f"{type(value).__name__} (not a number)")
     value = float(value)
     if math.isnan(value) or (math.isinf(value) and not allow_inf) or (positive and not value > 0):
-        raise ValueError(f"{name} must be {expected or 'a positive ' + ('number (inf allowed)' if allow_inf else 'finite number')}"
-                         f"; got {value!r}")
+        expected = expected or ("a positive number (inf allowed)" if allow_inf else "a positive finite number")
+        raise ValueError(f"{name} must be {expected}; got {value!r}")
     return value
 
 
