@@ -269,6 +269,10 @@ def run(out: Path = DEFAULT_OUT, seeds: int = 3, quick: bool = False, only: list
         progress: bool = True, first_seed: int = 0) -> dict:
     """Train and evaluate every case for seeds ``first_seed .. seeds - 1``; write checkpoints, references and
     the results table (rows of seeds and cases not run are kept)."""
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or isinstance(first_seed, bool) or \
+            not isinstance(first_seed, int) or not 0 <= first_seed < seeds:
+        raise ValueError(f"reproduce needs integer seeds with 0 <= first_seed < seeds (at least one seed to "
+                         f"train); got first_seed={first_seed!r}, seeds={seeds!r}")
     out = Path(out)
     mode = "quick" if quick else "full"
     start = time.perf_counter()
