@@ -1,17 +1,39 @@
 """The built book in a real browser: headless Chromium over a local static server, with no network.
 
-Serves ``_build/html`` on a free localhost port, opens the index, every page of the theory part and every
-page that holds an explorer slider (``pinnhjb.widgets.FrameExplorer.html``), and checks that
+Serves ``_build/html`` on a free localhost port and opens EVERY content page (the root page, the theory and
+reference pages under ``book/``, every chapter under ``notebooks/``) at a desktop size (1400 x 900) and a
+phone size (390 x 844). One sweep (the ``sweep`` fixture) visits every page at both sizes and records what each
+check finds; each test below then reports every offending page and element of its check in one message, so a
+failing run says everything that is wrong at once.
 
-* the math rendered (MathJax output present, no raw ``$$`` / ``\\(`` / ``\\[`` left in the visible text,
-  no MathJax error nodes),
-* every ``<img>`` loaded (``naturalWidth > 0``),
-* no request left localhost, and no local request failed or returned an error status,
-* moving a slider changes the displayed frame and its value label.
+The shell (theme, configuration, ``book/_ext``, ``book/_theme``):
 
-A screenshot of every page is saved under ``_build/screenshots/``. Skipped when ``_build/html``, Chromium
-or Playwright is missing, unless ``PINNHJB_REQUIRE_SITE=1`` (set by ``.ci/run``), which turns every skip
-into a failure. Build the site first: ``bash scripts/build_book.sh`` (``scripts/test.sh`` does it).
+* the math rendered (MathJax output present, no raw ``$$`` / ``\\(`` / ``\\[`` left, no MathJax error nodes);
+* every ``<img>`` loaded; no request left localhost; no local request failed; no page holds a widget view;
+* no console errors (console messages of type error, and uncaught page errors);
+* on a phone the navigation drawer opens when its (visible) menu button is pressed and shows links a finger
+  can reach; on a desktop the menu button hides the sidebar and shows it again;
+* one search box on the desktop, and the search page finds words offline;
+* no horizontal page overflow (``document.scrollingElement.scrollWidth <= innerWidth + 1``), and no wide
+  equation, table, figure or code block is cut off by a box that does not scroll;
+* every figure keeps its aspect ratio;
+* each explorer slider, moved, changes the displayed frame and its value label.
+
+The content (chapters and theory pages):
+
+* no visible code input block (``div.cell_input pre``, ``div.highlight pre``) scrolls sideways;
+* every raster figure (``img`` in cell outputs, figures and explorer sliders) displays on the desktop at
+  >= 0.75 of its intended width: its ``width`` attribute when set (a 2x "retina" PNG carries width =
+  natural / 2), else its inline style width in px (how MyST-NB writes an output's width), else naturalWidth;
+* no raw label or role in the visible text (``eq. (flow_res)``, ``(IHJB_res)``, ``[third]``, ``{eq}``,
+  ``{cite}``, ``eq-...``);
+* every chapter links to a page of the book's theory part.
+
+A full-page screenshot of every page at both sizes goes to ``_build/screenshots/`` (``<page>__desktop.png``,
+``<page>__phone.png``). Skipped when ``_build/html``, Chromium or Playwright is missing, unless
+``PINNHJB_REQUIRE_SITE=1`` (set by ``.ci/run``), which turns every skip into a failure. Build the site first:
+``bash scripts/build_book.sh`` (``scripts/test.sh`` does it). ``PINNHJB_SITE`` points the test at another
+built site (e.g. a quick build without notebook execution).
 """
 from __future__ import annotations
 
@@ -21,8 +43,9 @@ import os
 import re
 import shutil
 import threading
+from collections import defaultdict
 from pathlib import Path
-from urllib.parse import urlparse
+from urllib.parse import unquote, urlparse
 
 import pytest
 
@@ -36,6 +59,20 @@ CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-network
 EXPLORER_MARK = 'class="pinnhjb-explorer"'
 WIDGET_VIEW_MARK = "application/vnd.jupyter.widget-view+json"
 WIDGET_STATE_MARK = "application/vnd.jupyter.widget-state+json"
+SIZES = {"desktop": (1400, 900), "phone": (390, 844)}
+MIN_FIGURE_SCALE = 0.75  # a raster figure shows at no less than this fraction of its intended width (desktop)
+MIN_DRAWER_LINKS = 3  # an open navigation drawer shows at least this many reachable links
+
+# Raw labels, keys and roles that should have become links or numbers. Checked in all visible text except code
+# inputs, inline code and MathJax's output; ROLE_KEY only in prose (printed outputs hold e.g. "[nan]").
+RAW_LABEL_PATTERNS = {
+    "a MyST role left as text": re.compile(
+        r"\{(?:eq|cite(?::[a-z]+)?|ref|numref|doc|prf:[a-z]+|term|download|glue(?::[a-z]+)?)\}"),
+    "an equation named by its label": re.compile(r"\beqs?\.\s*\((?=[^)\s]*[A-Za-z])[\w:.-]+\)"),
+    "a label in parentheses": re.compile(r"\((?=[\w-]*[A-Za-z])[A-Za-z0-9]+_[\w-]+\)"),
+    "an eq- label": re.compile(r"(?<![\w-])eq-[\w-]+"),
+}
+ROLE_KEY = re.compile(r"\[(?=[a-z0-9_:-]*[a-z]{2})[a-z][a-z0-9_:-]*\]")  # [third]: an unresolved citation key
 
 
 def _missing(reason: str):
@@ -59,14 +96,31 @@ def _content_pages() -> list[Path]:
                   if p.parent != SITE and not p.relative_to(SITE).parts[0].startswith("_"))
 
 
-def _pages_to_open() -> list[str]:
-    """The index, the theory pages and every page holding an explorer, as paths relative to the site."""
-    pages = ["index.html"]
-    for p in _content_pages():
-        rel = p.relative_to(SITE).as_posix()
-        if rel.startswith("book/") or EXPLORER_MARK in p.read_text(encoding="utf-8"):
-            pages.append(rel)
-    return pages
+def _rel(p: Path) -> str:
+    return p.relative_to(SITE).as_posix()
+
+
+def _chapters() -> list[str]:
+    return [r for r in map(_rel, _content_pages()) if r.startswith("notebooks/")]
+
+
+def _theory_pages() -> set[str]:
+    """The pages of the toc part whose caption names the theory (every book/ page if there is none)."""
+    import yaml  # PyYAML comes with Jupyter Book
+
+    toc = yaml.safe_load((ROOT / "_toc.yml").read_text(encoding="utf-8"))
+    pages = {Path(ch["file"]).with_suffix(".html").as_posix()
+             for part in toc.get("parts", []) if "theory" in str(part.get("caption", "")).lower()
+             for ch in part.get("chapters", [])}
+    return pages or {r for r in map(_rel, _content_pages()) if r.startswith("book/")}
+
+
+def _has_explorer(rel: str) -> bool:
+    return EXPLORER_MARK in (SITE / rel).read_text(encoding="utf-8")
+
+
+def _shot_name(rel: str, size: str) -> str:
+    return rel.replace("/", "__").removesuffix(".html") + f"__{size}.png"
 
 
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
@@ -106,81 +160,193 @@ def browser():
             b.close()
 
 
-def _open(browser, server, rel: str):
-    """Open one page, recording every request; returns (page, requests, failures)."""
-    context = browser.new_context(viewport={"width": 1280, "height": 900}, service_workers="block")
-    page = context.new_page()
-    requests: list[str] = []
-    failures: list[str] = []
-    page.on("request", lambda r: requests.append(r.url))
-    page.on("requestfailed", lambda r: failures.append(f"{r.url} ({r.failure})"))
-    page.on("response", lambda r: failures.append(f"{r.url} (HTTP {r.status})") if r.status >= 400 else None)
-    page.goto(f"{server}/{rel}", wait_until="load")
-    redirect = re.search(r'http-equiv="Refresh" content="0; url=([^"]+)"', (SITE / rel).read_text(encoding="utf-8"),
-                         re.IGNORECASE)
-    if redirect:  # Jupyter Book's index.html only redirects to the root page: check where it lands
-        page.wait_for_url(f"**/{redirect.group(1)}", wait_until="load")
-    return context, page, requests, failures
+class _Visit:
+    """One page open at one size, with everything it requested and logged."""
+
+    def __init__(self, browser, server, rel: str, size: str):
+        width, height = SIZES[size]
+        self.rel, self.size, self.host = rel, size, urlparse(server).netloc
+        self.where = f"{rel} [{size}]"
+        self.context = browser.new_context(viewport={"width": width, "height": height}, service_workers="block")
+        self.page = page = self.context.new_page()
+        page.set_default_timeout(30_000)
+        self.requests: list[str] = []
+        self.failures: list[str] = []
+        self.errors: list[str] = []
+        page.on("request", lambda r: self.requests.append(r.url))
+        page.on("requestfailed", lambda r: self.failures.append(f"{r.url} ({r.failure})"))
+        page.on("response", lambda r: self.failures.append(f"{r.url} (HTTP {r.status})") if r.status >= 400 else None)
+        page.on("console", lambda m: self.errors.append(f"console error: {m.text}") if m.type == "error" else None)
+        page.on("pageerror", lambda e: self.errors.append(f"page error: {e}"))
+        page.goto(f"{server}/{rel}", wait_until="load")
+        redirect = re.search(r'http-equiv="Refresh" content="0; url=([^"]+)"',
+                             (SITE / rel.split("?")[0]).read_text(encoding="utf-8"), re.IGNORECASE)
+        if redirect:  # Jupyter Book's index.html only redirects to the root page: check where it lands
+            page.wait_for_url(f"**/{redirect.group(1)}", wait_until="load")
+        page.evaluate("() => window.scrollTo(0, document.body.scrollHeight)")  # anything loaded lazily, too
+        page.wait_for_load_state("networkidle")
+        page.evaluate("() => window.scrollTo(0, 0)")
+
+    def external_requests(self) -> list[str]:
+        return [u for u in self.requests if urlparse(u).scheme in ("http", "https", "ws", "wss")
+                and urlparse(u).netloc != self.host]
+
+    def close(self):
+        self.context.close()
 
 
-def _wait_for_math(page):
-    """Wait until MathJax (if the page has math) has typeset everything."""
-    has_math = page.evaluate("() => document.querySelector('.math') !== null")
-    if has_math:
-        try:
-            page.wait_for_function("() => window.MathJax && MathJax.startup && MathJax.startup.promise",
-                                   timeout=30_000)
-        except Exception as exc:  # playwright's TimeoutError
-            raise AssertionError(f"{page.url}: the page has math but MathJax never started") \
-                from exc
-        page.evaluate("() => MathJax.startup.promise")
-    return has_math
+def _wait_for_math(page) -> bool:
+    """Wait until MathJax (if the page has math) has typeset everything; True when the page has math."""
+    if not page.evaluate("() => document.querySelector('.math') !== null"):
+        return False
+    try:
+        page.wait_for_function("() => window.MathJax && MathJax.startup && MathJax.startup.promise",
+                               timeout=30_000)
+    except Exception as exc:  # playwright's TimeoutError
+        raise AssertionError(f"{page.url}: the page has math but MathJax never started") from exc
+    page.evaluate("() => MathJax.startup.promise")
+    return True
 
 
-def _check_page(page, requests, failures, server, rel):
-    host = urlparse(server).netloc
-    page.evaluate("() => window.scrollTo(0, document.body.scrollHeight)")  # anything loaded lazily, too
-    page.wait_for_load_state("networkidle")
-    page.evaluate("() => window.scrollTo(0, 0)")
+# --- what the sweep measures in the page ------------------------------------------------------------------
 
-    external = [u for u in requests if urlparse(u).scheme in ("http", "https", "ws", "wss")
-                and urlparse(u).netloc != host]
-    assert not external, f"{rel}: requests left the machine: {external}"
-    assert not failures, f"{rel}: failed requests: {failures}"
-    has_math = _wait_for_math(page)
+_IS_SHOWN = """el => el.getClientRects().length > 0 && (!el.checkVisibility ||
+                    el.checkVisibility({visibilityProperty: true, opacityProperty: true}))"""
 
-    if has_math:
-        n_math = page.evaluate("() => document.querySelectorAll('.math').length")
-        n_out = page.evaluate("() => document.querySelectorAll('mjx-container').length")
-        assert n_out >= n_math > 0, f"{rel}: {n_math} math elements but {n_out} rendered by MathJax"
-        assert page.evaluate("() => document.querySelectorAll('mjx-merror').length") == 0, \
-            f"{rel}: MathJax reported an error"
-        text = page.evaluate("""() => {  // prose only: not code, scripts or MathJax's own output
-            const walk = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);  // sidebar too
-            const out = [];
-            for (let n = walk.nextNode(); n; n = walk.nextNode())
-                if (!n.parentElement.closest('pre, code, script, style, textarea, mjx-container'))
-                    out.push(n.textContent);
-            return out.join(' ');
-        }""")
-        raw = re.findall(r"\$\$|\\\(|\\\)|\\\[|\\\]|\\begin\{", text)
-        assert not raw, f"{rel}: raw TeX left visible: {raw[:5]}"
+_MATH_STATE = """() => {
+    const text = [];  // prose only: not code, scripts or MathJax's own output
+    const walk = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);  // the sidebar too
+    for (let n = walk.nextNode(); n; n = walk.nextNode())
+        if (!n.parentElement.closest('pre, code, script, style, textarea, mjx-container')) text.push(n.textContent);
+    return {n_math: document.querySelectorAll('.math').length,
+            n_out: document.querySelectorAll('mjx-container').length,
+            n_err: document.querySelectorAll('mjx-merror').length, text: text.join(' ')};
+}"""
 
-    broken = page.evaluate("""() => Array.from(document.images)
-        .filter(im => im.getBoundingClientRect().width > 0 || im.closest('.pinnhjb-frames'))
-        .filter(im => !(im.complete && im.naturalWidth > 0))
-        .map(im => (im.currentSrc || im.src).slice(0, 80))""")
-    assert not broken, f"{rel}: images not loaded: {broken}"
-    n_bad = page.evaluate("""() => Array.from(document.images)
-        .filter(im => !(im.complete && im.naturalWidth > 0)).length""")
-    assert n_bad == 0, f"{rel}: {n_bad} images (hidden or not) did not load"
+_IMAGES_BROKEN = """() => Array.from(document.images)
+    .filter(im => !(im.complete && im.naturalWidth > 0))
+    .map(im => (im.currentSrc || im.src).slice(-80))"""
 
-    assert WIDGET_VIEW_MARK not in page.content(), (
-        f"{rel}: a widget view needs the ipywidgets manager, which the offline site does not load")
-    return has_math
+_VISIBLE_TEXT = """() => {
+    const shown = (%s);
+    const prose = [], outputs = [];
+    const walk = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+    for (let n = walk.nextNode(); n; n = walk.nextNode()) {
+        const el = n.parentElement;
+        if (!el || !n.textContent.trim()) continue;
+        if (el.closest('div.cell_input, code, kbd, script, style, textarea, mjx-container, dialog:not([open])'))
+            continue;
+        if (!shown(el)) continue;
+        (el.closest('pre') ? outputs : prose).push(n.textContent);
+    }
+    return {prose: prose.join(' '), outputs: outputs.join(' ')};
+}""" % _IS_SHOWN
+
+_CODE_SCROLLING = """() => {
+    const shown = (%s);
+    // code the reader is meant to read: cell inputs and code blocks of the text, not printed outputs
+    const blocks = Array.from(document.querySelectorAll('div.cell_input pre, div.highlight pre'))
+        .filter(pre => !pre.closest('.cell_output, .output'));
+    const cells = Array.from(document.querySelectorAll('div.cell'));
+    return blocks
+        .filter(pre => shown(pre) && pre.scrollWidth > pre.clientWidth + 1)
+        .map(pre => {
+            const lines = pre.innerText.split('\\n');
+            const longest = lines.reduce((a, b) => (b.length > a.length ? b : a), '');
+            const cell = pre.closest('div.cell');
+            const where = cell ? 'code cell ' + (cells.indexOf(cell) + 1) : 'code block ' + (blocks.indexOf(pre) + 1);
+            return {over: pre.scrollWidth - pre.clientWidth, width: pre.clientWidth, where,
+                    line: longest.trim().slice(0, 60), chars: longest.length};
+        });
+}""" % _IS_SHOWN
+
+_FIGURES = """() => {
+    const shown = (%s);
+    return Array.from(document.querySelectorAll(
+            'div.cell_output img, figure img, div.figure img, .pinnhjb-explorer img'))
+        .filter(im => shown(im) && im.naturalWidth > 0)
+        .filter(im => !/\\.svg([?#]|$)|^data:image\\/svg/i.test(im.currentSrc || im.src))
+        .map(im => {
+            const r = im.getBoundingClientRect();
+            const attr = parseFloat(im.getAttribute('width'));
+            const style = /px$/.test(im.style.width) ? parseFloat(im.style.width) : NaN;
+            const intended = attr > 0 ? attr : (style > 0 ? style : im.naturalWidth);
+            const fig = im.closest('figure');
+            const number = fig && fig.querySelector('figcaption .caption-number');
+            const label = (number ? number.textContent.trim() + ' ' : '') +
+                          (im.alt || decodeURIComponent(im.src.split('/').pop()));
+            return {shown: r.width, height: r.height, intended, nw: im.naturalWidth, nh: im.naturalHeight,
+                    explorer: !!im.closest('.pinnhjb-explorer'),
+                    name: label.trim().slice(0, 70)};
+        });
+}""" % _IS_SHOWN
+
+_OVERFLOW = """() => {
+    const W = innerWidth, out = [];
+    for (const el of document.querySelectorAll('body *')) {
+        const r = el.getBoundingClientRect();
+        if (r.width === 0 || r.right <= W + 1) continue;
+        let p = el.parentElement, contained = false;
+        for (; p && p !== document.body; p = p.parentElement)
+            if (getComputedStyle(p).overflowX !== 'visible') { contained = true; break; }
+        if (contained || getComputedStyle(el).position === 'fixed') continue;
+        if (el.parentElement && el.parentElement.getBoundingClientRect().right > W + 1 &&
+            el.parentElement !== document.body) continue;  // report the outermost one
+        out.push(el.tagName.toLowerCase() + (el.className && typeof el.className === 'string'
+                 ? '.' + el.className.trim().split(/\\s+/).slice(0, 2).join('.') : '') +
+                 ` (right edge ${Math.round(r.right)} px)`);
+    }
+    return {scroll: document.scrollingElement.scrollWidth, width: W, culprits: out.slice(0, 6)};
+}"""
+
+_CUT = """() => {
+    const shown = (%s), out = [];
+    const name = el => el.tagName.toLowerCase() + (el.getAttribute('display') ? '[display]' : '') +
+        (el.closest('.cell') ? ' in a cell' : '') + ': ' + (el.textContent || el.alt || '').trim().slice(0, 40);
+    for (const el of document.querySelectorAll(
+            'article mjx-container, article table, article img, article pre, article .pinnhjb-explorer')) {
+        if (!shown(el)) continue;
+        const r = el.getBoundingClientRect(), cs = getComputedStyle(el);
+        if (el.scrollWidth > el.clientWidth + 1 && /hidden|clip/.test(cs.overflowX)) {
+            out.push(name(el) + ` (hides ${el.scrollWidth - el.clientWidth} px of itself)`);
+            continue;
+        }
+        for (let p = el.parentElement; p && p !== document.body; p = p.parentElement) {
+            const ps = getComputedStyle(p);
+            if (ps.overflowX === 'visible') continue;
+            const pr = p.getBoundingClientRect();
+            if (/hidden|clip/.test(ps.overflowX) && (r.right > pr.right + 1 || r.left < pr.left - 1))
+                out.push(name(el) + ` (cut by ${p.tagName.toLowerCase()}.${String(p.className).split(' ')[0]})`);
+            break;
+        }
+    }
+    return out;
+}""" % _IS_SHOWN
+
+_SEARCH_BOXES = """() => {
+    const shown = (%s);
+    return Array.from(document.querySelectorAll('.search-button-field, .search-button, form.bd-search'))
+        .filter(el => !el.closest('dialog:not([open])') && shown(el)
+                      && el.getBoundingClientRect().width > 0).map(el => el.className);
+}""" % _IS_SHOWN
+
+_NAV_LINKS = """() => Array.from(document.querySelectorAll(
+        '#pst-primary-sidebar-modal a[href], .bd-sidebar-primary a[href]'))
+    .filter(a => {
+        const r = a.getBoundingClientRect();
+        if (r.width < 1 || r.height < 1 || r.right <= 0 || r.left >= innerWidth || r.bottom <= 0 ||
+            r.top >= innerHeight || getComputedStyle(a).visibility !== 'visible') return false;
+        const hit = document.elementFromPoint(Math.max(0, Math.min(r.left + r.width / 2, innerWidth - 1)),
+                                              r.top + r.height / 2);
+        return !!hit && (hit === a || a.contains(hit));  // reachable: nothing covers it
+    }).map(a => a.textContent.trim())"""
+
+_LINKS = """() => Array.from(document.querySelectorAll('article.bd-article a[href]'))
+    .filter(a => !a.closest('.prev-next-area, .bd-footer-article, nav'))
+    .map(a => new URL(a.getAttribute('href'), location.href).pathname)"""
 
 
-def _move_sliders(page, rel):
+def _move_sliders(page, where: str, problems: list[str]) -> int:
     """Move every explorer slider and check that the displayed frame and the label change."""
     explorers = page.locator(".pinnhjb-explorer")
     n = explorers.count()
@@ -197,49 +363,313 @@ def _move_sliders(page, rel):
                     width: shown.length ? shown[0].naturalWidth : 0};
         }"""
         before = ex.evaluate(state)
-        assert len(before["shown"]) == 1 and before["width"] > 0, f"{rel}: explorer {k} shows {before}"
-        assert int(before["max"]) >= 1, f"{rel}: explorer {k} has a single frame"
-        slider = ex.locator("input[type=range]")
-        slider.focus()
+        if not (len(before["shown"]) == 1 and before["width"] > 0):
+            problems.append(f"{where}: explorer {k + 1} shows {before}")
+            continue
+        if int(before["max"]) < 1:
+            problems.append(f"{where}: explorer {k + 1} has a single frame")
+            continue
+        ex.locator("input[type=range]").focus()
         key = "ArrowRight" if int(before["value"]) < int(before["max"]) else "ArrowLeft"
         page.keyboard.press(key)  # a real user input: fires the 'input' event the explorer listens to
         after = ex.evaluate(state)
-        assert after["value"] != before["value"], f"{rel}: explorer {k}: the slider did not move"
-        assert len(after["shown"]) == 1 and after["shown"] != before["shown"], \
-            f"{rel}: explorer {k}: moving the slider did not change the frame ({before} -> {after})"
-        assert after["src"] != before["src"] and after["width"] > 0, f"{rel}: explorer {k}: same image shown"
-        assert after["label"] != before["label"], f"{rel}: explorer {k}: the value label did not change"
+        if after["value"] == before["value"]:
+            problems.append(f"{where}: explorer {k + 1}: the slider did not move")
+        elif not (len(after["shown"]) == 1 and after["shown"] != before["shown"]
+                  and after["src"] != before["src"] and after["width"] > 0):
+            problems.append(f"{where}: explorer {k + 1}: moving the slider did not change the frame "
+                            f"({before} -> {after})")
+        elif after["label"] == before["label"]:
+            problems.append(f"{where}: explorer {k + 1}: the value label did not change")
     return n
 
+
+def _check_drawer(page, where: str, size: str, problems: list[str]):
+    """Phone: the menu button opens the navigation drawer with reachable links. Desktop: it hides the sidebar
+    and shows it again."""
+    buttons = page.locator("button.primary-toggle:visible")
+    if buttons.count() == 0:
+        problems.append(f"{where}: no visible menu (primary sidebar) button")
+        return
+    closed = page.evaluate(_NAV_LINKS)
+    if size == "phone":
+        if closed:
+            problems.append(f"{where}: navigation links show before the menu button is pressed: {closed[:3]}")
+        buttons.first.click()
+        page.wait_for_timeout(400)  # the drawer's transition
+        opened = page.evaluate(_NAV_LINKS)
+        if len(opened) < MIN_DRAWER_LINKS:
+            problems.append(f"{where}: pressing the menu button shows {len(opened)} navigation links "
+                            f"(want >= {MIN_DRAWER_LINKS}): {opened}")
+        page.keyboard.press("Escape")
+        page.wait_for_timeout(400)
+        if page.evaluate(_NAV_LINKS):
+            problems.append(f"{where}: the navigation drawer does not close on Escape")
+    else:
+        if len(closed) < MIN_DRAWER_LINKS:
+            problems.append(f"{where}: the sidebar shows {len(closed)} navigation links on a desktop")
+            return
+        buttons.first.click()
+        page.wait_for_timeout(600)  # the sidebar's transition
+        hidden = page.evaluate(_NAV_LINKS)
+        buttons.first.click()
+        page.wait_for_timeout(600)
+        shown = page.evaluate(_NAV_LINKS)
+        if hidden or len(shown) < MIN_DRAWER_LINKS:
+            problems.append(f"{where}: the menu button does not hide and show the sidebar "
+                            f"({len(closed)} -> {len(hidden)} -> {len(shown)} links)")
+
+
+def _sweep_one(v: _Visit, found: dict, theory: set[str]):
+    page, where, rel, size = v.page, v.where, v.rel, v.size
+
+    external = v.external_requests()
+    if external:
+        found["requests"].append(f"{where}: requests left the machine: {external[:5]}")
+    n_failed = len(v.failures)
+    if n_failed:
+        found["requests"].append(f"{where}: failed requests: {v.failures[:5]}")
+
+    if _wait_for_math(page):
+        found["n_math"].append(where)
+        m = page.evaluate(_MATH_STATE)
+        if not m["n_out"] >= m["n_math"] > 0:
+            found["math"].append(f"{where}: {m['n_math']} math elements but {m['n_out']} rendered by MathJax")
+        if m["n_err"]:
+            found["math"].append(f"{where}: MathJax reported {m['n_err']} errors")
+        raw = re.findall(r"\$\$|\\\(|\\\)|\\\[|\\\]|\\begin\{", m["text"])
+        if raw:
+            found["math"].append(f"{where}: raw TeX left visible: {raw[:5]}")
+
+    broken = page.evaluate(_IMAGES_BROKEN)
+    if broken:
+        found["images"].append(f"{where}: {len(broken)} images did not load: {broken[:3]}")
+    if WIDGET_VIEW_MARK in page.content():
+        found["images"].append(f"{where}: a widget view needs the ipywidgets manager, which the site does not load")
+
+    for fig in page.evaluate(_FIGURES):
+        if fig["height"] > 0 and fig["nh"] > 0:
+            aspect, natural = fig["shown"] / fig["height"], fig["nw"] / fig["nh"]
+            if abs(aspect / natural - 1) > 0.03:
+                found["aspect"].append(f"{where}: '{fig['name']}' is drawn at aspect {aspect:.2f}, "
+                                       f"its image has {natural:.2f}")
+        if size == "desktop" and fig["shown"] < MIN_FIGURE_SCALE * fig["intended"]:
+            kind = "explorer frame" if fig["explorer"] else "figure"
+            found["figures"].append(
+                f"{where}: {kind} '{fig['name']}' shows at {fig['shown']:.0f} of {fig['intended']:.0f} px "
+                f"({fig['shown'] / fig['intended']:.2f}x; natural width {fig['nw']} px)")
+
+    for c in page.evaluate(_CODE_SCROLLING):
+        found["code"].append(f"{where}: {c['where']} scrolls {c['over']} px in a {c['width']} px box; "
+                             f"longest line ({c['chars']} chars): {c['line']!r}")
+
+    text = page.evaluate(_VISIBLE_TEXT)
+    for label, pattern in RAW_LABEL_PATTERNS.items():
+        hits = sorted(set(pattern.findall(text["prose"]) + pattern.findall(text["outputs"])))
+        if hits:
+            found["labels"].append(f"{where}: {label}: {hits[:6]}")
+    keys = sorted(set(ROLE_KEY.findall(text["prose"])))
+    if keys:
+        found["labels"].append(f"{where}: an unresolved citation key or label in brackets: {keys[:6]}")
+
+    if size == "desktop" and rel.startswith("notebooks/"):
+        targets = {unquote(p) for p in page.evaluate(_LINKS)}
+        if not any(t.endswith("/" + theory_page) for t in targets for theory_page in theory):
+            found["theory_links"].append(f"{rel}: no link to a theory page ({', '.join(sorted(theory))})")
+
+    over = page.evaluate(_OVERFLOW)
+    if over["scroll"] > over["width"] + 1:
+        found["overflow"].append(f"{where}: the page is {over['scroll']} px wide in a {over['width']} px window; "
+                                 f"sticking out: {over['culprits']}")
+    for c in page.evaluate(_CUT):
+        found["cut"].append(f"{where}: {c}")
+
+    boxes = page.evaluate(_SEARCH_BOXES)
+    if len(boxes) > 1 or (size == "desktop" and len(boxes) != 1):
+        found["search"].append(f"{where}: {len(boxes)} search boxes/buttons show: {boxes}")
+
+    if size == "desktop":
+        n = _move_sliders(page, where, found["sliders"])
+        if n:
+            found["n_sliders"].append(where)
+            page.evaluate("() => window.scrollTo(0, 0)")
+
+    page.screenshot(path=str(SHOTS / _shot_name(rel, size)), full_page=True)
+    found["shots"].append(_shot_name(rel, size))
+
+    _check_drawer(page, where, size, found["drawer"])
+
+    if len(v.failures) > n_failed:  # anything the interaction requested
+        found["requests"].append(f"{where}: failed requests after interaction: {v.failures[n_failed:][:5]}")
+    if v.external_requests() != external:
+        found["requests"].append(f"{where}: requests left the machine after interaction: "
+                                 f"{v.external_requests()[len(external):][:5]}")
+    found["console"].extend(f"{where}: {e}" for e in v.errors)
+
+
+@pytest.fixture(scope="module")
+def sweep(server, browser):
+    """Every content page at every size, once; returns {check: [problems...]} plus counters."""
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    found: dict[str, list[str]] = defaultdict(list)
+    theory = _theory_pages()
+    pages = [_rel(p) for p in _content_pages()]
+    for rel in pages:
+        for size in SIZES:
+            v = _Visit(browser, server, rel, size)
+            try:
+                _sweep_one(v, found, theory)
+            except Exception as exc:  # a page that breaks the sweep is a problem of its own, not a crash
+                found["sweep"].append(f"{v.where}: {type(exc).__name__}: {exc}".splitlines()[0][:300])
+            finally:
+                v.close()
+    found["pages"] = pages
+    return found
+
+
+def _report(found, key: str, what: str):
+    problems = found.get(key, [])
+    assert not problems, f"{what}: {len(problems)} problems\n  " + "\n  ".join(problems)
+
+
+# --- static checks of the built files -----------------------------------------------------------------------
 
 def test_site_built_and_has_explorers():
     if not (SITE / "index.html").is_file():
         _missing(f"no built site at {SITE} (run: bash scripts/build_book.sh)")
-    pages = _pages_to_open()
-    assert any(p.startswith("notebooks/") for p in pages), "no page with an explorer slider in the built site"
-    for p in _content_pages():  # the offline site references no CDN in any page
+    pages = _content_pages()
+    assert any(p.relative_to(SITE).parts[0] == "notebooks" and _has_explorer(_rel(p)) for p in pages), \
+        "no page with an explorer slider in the built site"
+    for p in pages:  # the offline site references no CDN in any page
         html = p.read_text(encoding="utf-8")
         ext = re.findall(r'<(?:script|link|img|iframe)[^>]+(?:src|href)="(https?://[^"]+)"', html)
         assert not ext, f"{p.relative_to(SITE)} loads assets from the network: {ext}"
         assert WIDGET_STATE_MARK not in html, f"{p.relative_to(SITE)} embeds ipywidgets state that nothing reads"
 
 
-def test_pages_in_chromium(server, browser):
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    pages = _pages_to_open()
-    n_math = n_sliders = 0
-    for rel in pages:
-        context, page, requests, failures = _open(browser, server, rel)
-        try:
-            n_math += bool(_check_page(page, requests, failures, server, rel))
-            moved = _move_sliders(page, rel)
-            n_sliders += moved
-            if moved:  # show the first explorer, after its slider was moved
-                page.locator(".pinnhjb-explorer").first.scroll_into_view_if_needed()
-            page.screenshot(path=str(SHOTS / (rel.replace("/", "__").removesuffix(".html") + ".png")),
-                            full_page=False)
-            assert not failures, f"{rel}: failed requests after interaction: {failures}"
-        finally:
-            context.close()
-    assert n_math > 0, "no page with math was checked"
-    assert n_sliders > 0, "no explorer slider was moved"
+def test_site_has_what_readers_expect():
+    """A repository link on every page, a download of each chapter's notebook, no link to an empty index."""
+    if not (SITE / "index.html").is_file():
+        _missing(f"no built site at {SITE} (run: bash scripts/build_book.sh)")
+    import yaml
+
+    config = yaml.safe_load((ROOT / "_config.yml").read_text(encoding="utf-8"))
+    repo = (config.get("repository") or {}).get("url")
+    assert repo, "_config.yml names no repository.url"
+    problems = []
+    genindex = SITE / "genindex.html"
+    index_empty = genindex.is_file() and 'class="indextable' not in genindex.read_text(encoding="utf-8")
+    for p in _content_pages():
+        rel, html = _rel(p), p.read_text(encoding="utf-8")
+        if f'href="{repo}"' not in html:
+            problems.append(f"{rel}: no link to the repository {repo}")
+        if (not genindex.is_file() or index_empty) and re.search(r'href="[^"]*genindex\.html"', html):
+            problems.append(f"{rel}: links to an index page that is {'empty' if index_empty else 'missing'}")
+        if rel.startswith("notebooks/"):
+            source = f"_sources/{rel.removesuffix('.html')}.ipynb"
+            if f'{source}"' not in html:
+                problems.append(f"{rel}: no download button for {source}")
+            elif not (SITE / source).is_file():
+                problems.append(f"{rel}: the download {source} is missing from the site")
+    get_code = SITE / "book" / "run_it_yourself.html"
+    text = re.sub(r"<[^>]+>", "", get_code.read_text(encoding="utf-8")) if get_code.is_file() else ""
+    if f"git clone {repo}" not in text:
+        problems.append(f"book/run_it_yourself.html: no 'git clone {repo}' (the repository.url of _config.yml)")
+    assert not problems, "\n  ".join(["what readers expect:"] + problems)
+
+
+# --- the browser sweep --------------------------------------------------------------------------------------
+
+def test_every_page_swept(sweep):
+    _report(sweep, "sweep", "pages that broke the sweep")
+    assert any(p.startswith("notebooks/") for p in sweep["pages"]) and any(p.startswith("book/")
+                                                                            for p in sweep["pages"])
+
+
+def test_math_rendered(sweep):
+    assert sweep["n_math"], "no page with math was checked"
+    _report(sweep, "math", "math not rendered")
+
+
+def test_requests_stay_on_the_machine(sweep):
+    _report(sweep, "requests", "requests that left the machine or failed")
+
+
+def test_images_load(sweep):
+    _report(sweep, "images", "images that did not load")
+
+
+def test_sliders_move(sweep):
+    assert sweep["n_sliders"], "no explorer slider was moved"
+    _report(sweep, "sliders", "explorer sliders")
+
+
+def test_no_console_errors(sweep):
+    _report(sweep, "console", "console errors")
+
+
+def test_navigation_drawer_opens(sweep):
+    _report(sweep, "drawer", "navigation (phone drawer, desktop menu button)")
+
+
+def test_one_search_box(sweep):
+    _report(sweep, "search", "search boxes")
+
+
+def test_no_horizontal_page_overflow(sweep):
+    _report(sweep, "overflow", "pages wider than the window")
+
+
+def test_wide_content_scrolls_in_its_own_box(sweep):
+    _report(sweep, "cut", "equations, tables, figures or code cut off by a box that does not scroll")
+
+
+def test_figures_keep_their_aspect_ratio(sweep):
+    _report(sweep, "aspect", "figures drawn out of proportion")
+
+
+def test_screenshots_of_every_page(sweep):
+    missing = [f"{rel} [{size}]" for rel in sweep["pages"] for size in SIZES
+               if not (SHOTS / _shot_name(rel, size)).is_file()]
+    assert not missing, f"no screenshot under {SHOTS} for: {missing}"
+
+
+def test_code_fits_without_scrolling(sweep):
+    _report(sweep, "code", "code input blocks that scroll sideways")
+
+
+def test_figures_display_near_their_intended_width(sweep):
+    _report(sweep, "figures", f"raster figures shown below {MIN_FIGURE_SCALE}x of their intended width (desktop)")
+
+
+def test_no_raw_labels_in_the_text(sweep):
+    _report(sweep, "labels", "raw labels, keys or roles in the visible text")
+
+
+def test_every_chapter_links_to_its_theory(sweep):
+    assert _chapters(), "no chapter pages in the built site"
+    _report(sweep, "theory_links", "chapters without a link to a theory page")
+
+
+# --- the index redirect and the search page -----------------------------------------------------------------
+
+def test_index_redirects_to_the_root_page(server, browser):
+    v = _Visit(browser, server, "index.html", "desktop")
+    try:
+        assert not v.page.url.endswith("/index.html"), f"index.html did not redirect (at {v.page.url})"
+        assert not v.errors, f"index.html: console errors: {v.errors}"
+        assert not v.failures and not v.external_requests(), f"index.html: requests {v.failures}"
+    finally:
+        v.close()
+
+
+def test_search_works_offline(server, browser):
+    """The search page finds a word of the book with the site's own index, with no console errors."""
+    v = _Visit(browser, server, "search.html?q=Riccati", "desktop")
+    try:
+        v.page.wait_for_function("() => document.querySelectorAll('#search-results li').length > 0",
+                                 timeout=30_000)
+        assert not v.errors, f"search.html: console errors: {v.errors}"
+        assert not v.external_requests(), f"search.html: requests left the machine: {v.external_requests()}"
+    finally:
+        v.close()
