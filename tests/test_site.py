@@ -384,9 +384,19 @@ def _move_sliders(page, where: str, problems: list[str]) -> int:
     return n
 
 
+def _nav_links_when(page, opened: bool) -> list[str]:
+    """The reachable navigation links once the drawer/sidebar is open (or closed), waiting out its transition."""
+    want = f"n >= {MIN_DRAWER_LINKS}" if opened else "n === 0"
+    try:
+        page.wait_for_function(f"() => {{ const n = ({_NAV_LINKS})().length; return {want}; }}", timeout=5_000)
+    except Exception:  # playwright's TimeoutError: report what shows
+        pass
+    return page.evaluate(_NAV_LINKS)
+
+
 def _check_drawer(page, where: str, size: str, problems: list[str]):
-    """Phone: the menu button opens the navigation drawer with reachable links. Desktop: it hides the sidebar
-    and shows it again."""
+    """Phone: the menu button opens the navigation drawer with reachable links, and Escape closes it.
+    Desktop: the menu button hides the sidebar and shows it again."""
     buttons = page.locator("button.primary-toggle:visible")
     if buttons.count() == 0:
         problems.append(f"{where}: no visible menu (primary sidebar) button")
@@ -396,25 +406,22 @@ def _check_drawer(page, where: str, size: str, problems: list[str]):
         if closed:
             problems.append(f"{where}: navigation links show before the menu button is pressed: {closed[:3]}")
         buttons.first.click()
-        page.wait_for_timeout(400)  # the drawer's transition
-        opened = page.evaluate(_NAV_LINKS)
+        opened = _nav_links_when(page, opened=True)
         if len(opened) < MIN_DRAWER_LINKS:
             problems.append(f"{where}: pressing the menu button shows {len(opened)} navigation links "
                             f"(want >= {MIN_DRAWER_LINKS}): {opened}")
+            return
         page.keyboard.press("Escape")
-        page.wait_for_timeout(400)
-        if page.evaluate(_NAV_LINKS):
+        if _nav_links_when(page, opened=False):
             problems.append(f"{where}: the navigation drawer does not close on Escape")
     else:
         if len(closed) < MIN_DRAWER_LINKS:
             problems.append(f"{where}: the sidebar shows {len(closed)} navigation links on a desktop")
             return
         buttons.first.click()
-        page.wait_for_timeout(600)  # the sidebar's transition
-        hidden = page.evaluate(_NAV_LINKS)
+        hidden = _nav_links_when(page, opened=False)
         buttons.first.click()
-        page.wait_for_timeout(600)
-        shown = page.evaluate(_NAV_LINKS)
+        shown = _nav_links_when(page, opened=True)
         if hidden or len(shown) < MIN_DRAWER_LINKS:
             problems.append(f"{where}: the menu button does not hide and show the sidebar "
                             f"({len(closed)} -> {len(hidden)} -> {len(shown)} links)")
