@@ -5,7 +5,7 @@ Under the ansatz v = phi + (T - t)/T (N(x, t) - N(0, t)) every flow point needs 
 Evaluated per point (``points_per_time=None``) that is a second forward/backward pass as large as the first;
 with each fresh time shared by ``points_per_time`` points (``TrainConfig.points_per_time``, 16 by default) it is
 evaluated once per time. Both give the same derivatives (tests/test_pinn.py); this script times one Adam step
-(loss, double backward, update) of :func:`pinnhjb.training._finite_horizon_loss` on the quartic system with that
+(loss, double backward, update) of :meth:`pinnhjb.residuals.FiniteHorizonHJB.loss` on the quartic system with that
 recipe's network, for a few batch sizes, interleaving the variants so that both see the same machine state.
 
     .venv/bin/python benchmarks/step_cost.py [--threads 2] [--steps 200] [--repeats 3]
@@ -26,6 +26,7 @@ import torch
 import pinnhjb as ph
 from pinnhjb import training
 from pinnhjb.pinn import FiniteHorizonValue
+from pinnhjb.residuals import FiniteHorizonHJB
 from pinnhjb.storage import provenance
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -35,17 +36,18 @@ def time_steps(system, model, pool, batch: int, points_per_time: int | None, ste
     """Mean ms per Adam step over ``steps`` steps (after 10 warm-up steps)."""
     opt = torch.optim.Adam(model.net.parameters(), lr=1e-4)
     T = model.horizon
+    residual = FiniteHorizonHJB(system, model)
 
     def batch_args():
         flow = pool.take(torch.randint(len(pool), (batch,), generator=gen))
         if points_per_time is None:
             return flow, torch.rand(batch, generator=gen) * T, None, None
-        t, shared = training._shared_times(gen, batch, points_per_time, T, torch.float32, "cpu")
+        t, shared = training.shared_times(gen, batch, points_per_time, T, torch.float32, "cpu")
         return flow, t, None, None, shared
 
     def step():
         opt.zero_grad(set_to_none=True)
-        loss = training._finite_horizon_loss(system, model, *batch_args())
+        loss = residual.loss(*batch_args())
         loss.backward()
         opt.step()
 
@@ -72,7 +74,7 @@ def main(argv=None):
     torch.manual_seed(0)
     model = FiniteHorizonValue(system.n, 0.5, system.train_domain, width=cfg.width, depth=cfg.depth,
                                activation=cfg.activation)
-    pool = training._Data(system, system.sample(cfg.pool_size, gen), model.terminal_cost, need_phi_grad=True)
+    pool = training.StatePool(system, system.sample(cfg.pool_size, gen), model.terminal_cost, need_phi_grad=True)
     variants = {"per point": None, f"shared ({cfg.points_per_time} points per time)": cfg.points_per_time}
     rows = []
     for batch in (int(b) for b in args.batches.split(",")):

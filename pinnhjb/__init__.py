@@ -1,14 +1,14 @@
 """pinnhjb: physics-informed learning of the infinite-horizon optimal control problem via the finite-horizon
 HJB (Fotiadis & Vamvoudakis). See the README and the book for the map from the paper to the modules:
 
-systems (f, g, Q, R, Omega as data) · lq (Riccati ground truth) · pinn (networks, residuals) ·
-config / training (Algorithm 1) · gauss_newton (Levenberg-Marquardt, our optimiser) · jacobian (its fast Jacobian) ·
-solver (solve, extend = Theorem 2, solve_until, steady-state baseline) · metrics (E, errors, closed loop) ·
-storage (checkpoints with provenance).
+systems (f, g, Q, R, Omega as data) · lq (Riccati ground truth) · pinn (networks) · residuals (the PDE forms
+F_e, F_b, F_in, E_e, registered by name) · config / training (Algorithm 1) · gauss_newton (Levenberg-Marquardt,
+our optimiser) · jacobian (its fast Jacobian) · solver (solve, extend = Theorem 2, solve_until, steady-state
+baseline) · metrics (E, errors, closed loop) · storage (checkpoints with provenance).
 """
 import importlib as _importlib
 
-from . import lq, metrics, systems
+from . import lq, metrics, residuals, systems
 from .config import TrainConfig
 from .gauss_newton import DivergenceError
 from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
@@ -18,9 +18,9 @@ from .systems import ControlAffineSystem, get_system
 
 __version__ = "0.1.0"
 
-__all__ = ["systems", "lq", "metrics", "reference", "TrainConfig", "FiniteHorizonSolver", "SteadyStateSolver",
-           "FiniteHorizonSolution", "SteadyStateSolution", "Stage", "ControlAffineSystem", "get_system",
-           "save", "load", "CheckpointError", "DivergenceError", "__version__"]
+__all__ = ["systems", "lq", "metrics", "residuals", "reference", "TrainConfig", "FiniteHorizonSolver",
+           "SteadyStateSolver", "FiniteHorizonSolution", "SteadyStateSolution", "Stage", "ControlAffineSystem",
+           "get_system", "save", "load", "CheckpointError", "DivergenceError", "__version__"]
 
 # Submodules imported on first use (``ph.reference`` works after ``import pinnhjb``), so that importing the
 # package stays cheap: the reference solver, the reproduction, the plots and widgets.

@@ -4,8 +4,9 @@ The loss of Algorithm 1 under the ansatz is a mean of squared residuals, mean_i 
 Gauss-Newton model needs only the Jacobian J (N x P) of the residual vector in the weights. Each iteration
 draws fresh collocation points, forms J (by default with ``torch.func``: ``jacrev`` of one point's residual,
 ``vmap``-ed over the points; the residual itself holds first derivatives of the network, so J holds mixed second
-derivatives, all by autograd; training passes the faster structured Jacobian of :mod:`pinnhjb.jacobian`), and
-solves
+derivatives, all by autograd; training passes the residual form's own per-point residual and its faster
+structured Jacobian: :meth:`pinnhjb.residuals.Residual.point_residual`, :meth:`~pinnhjb.residuals.Residual.jacobian`),
+and solves
 
     (J'J + lambda I) delta = -J'r          (or, when N < P, delta = -J'(JJ' + lambda I)^{-1} r, the same step)
 
@@ -97,7 +98,9 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
     ``stall_windows`` windows. ``points`` may be a growing schedule (n_1, n_2, ...): each stall moves on to the
     next count (the stall rule starts afresh there), and only a stall at the last one stops. ``jacobian(theta,
     *batch) -> (r, J)``, when given, is the batch's residual vector and its Jacobian by a faster route than the
-    default ``vmap(jacrev(point_residual))`` (it must agree with it: see :mod:`pinnhjb.jacobian`).
+    default ``vmap(jacrev(point_residual))`` (it must agree with it: see :mod:`pinnhjb.jacobian`). The residual
+    forms of :mod:`pinnhjb.residuals` give both: ``point_residual(flat)``, ``jacobian()`` and, for ``sample``,
+    ``point_arguments(data, t)``.
     """
     schedule = [int(n) for n in points] if isinstance(points, Sequence) else [int(points)]
     if (steps < 0 or not schedule or min(schedule) < 1 or not 0 < damping < math.inf or window < 1 or stall_windows < 1

@@ -3,8 +3,8 @@
 Levenberg-Marquardt (:mod:`pinnhjb.gauss_newton`) needs J = d r / d theta (N x P) of the residual vector r. The
 plain way, ``vmap(jacrev(point_residual))``, is exact and general but, for the small networks of our default, a
 large share of each iteration, most of it in the overhead of batching many tiny operations.
-For a residual that uses the network's value and its first input derivatives only (the HJB residuals F_e of
-eq. (5) and E_e of eq. (flow_res) do), J has a structure that makes it cheap:
+For a residual that uses the network's value and its first input derivatives only (the HJB residuals F_e,
+eq-fe, and E_e, eq-ee, of :mod:`pinnhjb.residuals` do), J has a structure that makes it cheap:
 
 * forward: propagate the inputs z (M, d) and K input tangents dz (M, K, d) through the layers, keeping every
   linear layer's input (a, da) and output (h = a W' + b, dh = da W');

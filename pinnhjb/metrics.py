@@ -1,11 +1,12 @@
 """Checks of a learned value function (Section 5.1) and of its policy in closed loop.
 
-* :func:`infinite_horizon_residual` — E of eq. (IHJB_res): mean of E_e(x)^2 over points of Omega plus V(0)^2.
+* :func:`infinite_horizon_residual` — E (eq-e): mean of E_e(x)^2 (eq-ee) over points of Omega plus V(0)^2.
   By default the points are a grid of ``points_per_dim**n`` points while that stays at most
   :data:`GRID_MAX_POINTS` (every 1-, 2- and 3-D case of the book); above it (high n) E is a seeded Monte Carlo
   mean over :data:`MC_SAMPLES` uniform points of Omega, reported with its standard error (``E_stderr``) and
   sample size (``E_samples``), evaluated in batches so memory stays bounded in any dimension.
-* :func:`flow_residual_field` — E_e(x) of eq. (flow_res) on a grid, for plotting (the paper's Figures 1-3).
+* E_e(x) itself, on a grid for plotting (the paper's Figures 1-3), is
+  :meth:`pinnhjb.residuals.SteadyStateHJB.field` (``flow_residual_field`` is its deprecated alias).
 * :func:`optimality_errors` — max and mean-square errors of V and mu against a known V*, mu*.
 * :func:`closed_loop` — simulate ``xdot = f(x) + g(x) mu(x)`` with a batched RK4 and accumulate the cost
   J(mu; x0) of eq. (2), so a policy is judged by what it does.
@@ -16,6 +17,7 @@ float64 on the CPU (solution objects move them to their own device and precision
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Callable
 
@@ -24,6 +26,7 @@ import torch
 
 from . import lq
 from .pinn import gradient
+from .residuals import SteadyStateHJB
 
 Tensor = torch.Tensor
 ValueFn = Callable[[Tensor], Tensor]
@@ -83,18 +86,20 @@ def _chunks(x: Tensor, size: int = 16384):
 
 
 def flow_residual_field(system, value_fn: ValueFn, points: Tensor) -> Tensor:
-    """E_e(x; V) at every point (eq. (flow_res)), detached, shape (N,)."""
-    system.check_states(points, "points")
-    out = []
-    for xc in _chunks(points):
-        _, g = gradient(value_fn, xc)
-        out.append(system.hamiltonian_min(xc, g).detach())
-    return torch.cat(out)
+    """Deprecated alias of ``SteadyStateHJB(system, value_fn).field(points)``: E_e (eq-ee) at every point.
+
+    * ``system``: the control-affine system.
+    * ``value_fn``: a batched value function x (N, n) -> V (N,).
+    * ``points``: states (N, n).
+    """
+    warnings.warn("metrics.flow_residual_field is deprecated: use "
+                  "pinnhjb.residuals.SteadyStateHJB(system, value_fn).field(points)", DeprecationWarning, stacklevel=2)
+    return SteadyStateHJB(system, value_fn).field(points)
 
 
 def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None = None,
                               points_per_dim: int | None = None) -> dict:
-    """E = mean_i E_e(x_i)^2 + V(0)^2 (eq. (IHJB_res)) on ``points`` (default: a grid over Omega).
+    """E = mean_i E_e(x_i)^2 + V(0)^2 (eq-e) on ``points`` (default: a grid over Omega).
 
     Returns ``{"E", "E_flow", "E_boundary", "E_zero"}`` where ``E_zero`` is E of the trivial V = 0 on the
     same points (mean Q^2): on small boxes E is only meaningful next to it. When the grid would exceed
@@ -105,7 +110,7 @@ def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None =
         return _monte_carlo_residual(system, value_fn)
     if points is None:
         points = evaluation_grid(system, points_per_dim)
-    e = flow_residual_field(system, value_fn, points)
+    e = SteadyStateHJB(system, value_fn).field(points)
     with torch.no_grad():
         v0 = value_fn(torch.zeros(1, system.n, dtype=points.dtype, device=points.device))
         e_zero = (system.Q(points) ** 2).mean()
@@ -116,8 +121,9 @@ def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None =
 
 def _monte_carlo_residual(system, value_fn: ValueFn, samples: int = MC_SAMPLES) -> dict:
     total = total_sq = zero = 0.0
+    residual = SteadyStateHJB(system, value_fn)
     for xc in _monte_carlo_batches(system, samples):
-        e2 = flow_residual_field(system, value_fn, xc) ** 2
+        e2 = residual.field(xc) ** 2
         total += float(e2.sum())
         total_sq += float((e2**2).sum())
         with torch.no_grad():
@@ -230,7 +236,7 @@ def closed_loop(system, policy: Callable[..., Tensor], x0, t_final: float = 20.0
 def quadratic_fields(A, B, Q, R, P, x) -> dict:
     """Exact LQ counterparts of a learned solution's fields for V(x) = x'Px on ``x`` (N, n), numpy in and out:
     ``value`` x'Px, ``policy`` -R^{-1} B'P x (N, m) (:func:`pinnhjb.lq.lqr_gain`) and ``residual``
-    E_e(x; V) = x' (A'P + PA + Q - P B R^{-1} B'P) x (eq. (flow_res), the ARE residual
+    E_e(x; V) = x' (A'P + PA + Q - P B R^{-1} B'P) x (eq-ee, the ARE residual
     :func:`pinnhjb.lq.are_residual` as a quadratic form; zero for every solution of the ARE)."""
     x = np.asarray(x, dtype=float)
 

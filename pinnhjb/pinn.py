@@ -1,4 +1,4 @@
-"""Value networks and the paper's residuals (Section 3).
+"""Value networks (Section 3) and the autograd helpers the residuals use.
 
 * :class:`FiniteHorizonValue` is ``v_T(x, t)`` on ``Omega x [0, T]`` for the finite-horizon HJB (eq. (5)). With
   ``ansatz=True`` (our default) it is written as
@@ -9,11 +9,13 @@
 * Terminal costs phi are small modules: :class:`ZeroTerminalCost`, :class:`QuadraticTerminalCost`,
   :class:`ValueTerminalCost` (a frozen previous stage at t = 0, the terminal cost of the horizon
   extension, eq. (HJBinc)) and :class:`CallableTerminalCost` for a user's function.
-* :func:`value_and_gradients`, :func:`flow_residual` (F_e) and :func:`hjb_residual` (E_e, eq. (flow_res))
-  use autograd; no finite differences anywhere.
+* :func:`gradient` and :func:`value_and_gradients` differentiate a value by autograd; no finite differences
+  anywhere. The residuals themselves (F_e, F_b, F_in, E_e) are the objects of :mod:`pinnhjb.residuals`;
+  :func:`flow_residual` and :func:`hjb_residual` are deprecated aliases of them.
 """
 from __future__ import annotations
 
+import warnings
 from typing import Callable
 
 import numpy as np
@@ -272,7 +274,7 @@ def _broadcast_time(t, x: Tensor) -> Tensor:
     return t.expand(x.shape[0]) if t.numel() == 1 else t
 
 
-# ---------------------------------------------------------------------- residuals
+# ---------------------------------------------------------------------- autograd helpers
 
 def gradient(fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> tuple[Tensor, Tensor]:
     """Values fn(x) (N,) and their gradient in x (N, n) by autograd."""
@@ -297,12 +299,31 @@ def value_and_gradients(model: FiniteHorizonValue, x: Tensor, t: Tensor | float,
 
 def flow_residual(system, model: FiniteHorizonValue, x: Tensor, t: Tensor | float,
                   create_graph: bool = False) -> Tensor:
-    """F_e(x, t; v) = dv/dt + grad_x v' f + Q - 1/4 grad_x v' g R^{-1} g' grad_x v (Section 3)."""
-    _, gx, gt = value_and_gradients(model, x, t, create_graph=create_graph)
-    return gt + system.hamiltonian_min(x, gx)
+    """Deprecated alias of ``residuals.FiniteHorizonHJB(system, model).evaluate(x, t)``: F_e (eq-fe) per point.
+
+    * ``system``: the control-affine system.
+    * ``model``: a value model (x, t) -> v.
+    * ``x``: states (N, n).
+    * ``t``: times, (N,) or a scalar.
+    * ``create_graph``: keep the graph.
+    """
+    from .residuals import FiniteHorizonHJB  # residuals builds on this module
+
+    warnings.warn("pinn.flow_residual is deprecated: use pinnhjb.residuals.FiniteHorizonHJB(system, model)"
+                  ".evaluate(x, t)", DeprecationWarning, stacklevel=2)
+    return FiniteHorizonHJB(system, model).evaluate(x, t, create_graph=create_graph)
 
 
 def hjb_residual(system, value_fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> Tensor:
-    """E_e(x; V) of eq. (flow_res): the steady-state HJB (4) evaluated on V(.) = value_fn, per point (N,)."""
-    _, g = gradient(value_fn, x, create_graph=create_graph)
-    return system.hamiltonian_min(x, g)
+    """Deprecated alias of ``residuals.SteadyStateHJB(system, value_fn).evaluate(x)``: E_e (eq-ee) per point.
+
+    * ``system``: the control-affine system.
+    * ``value_fn``: a batched value function x (N, n) -> V (N,).
+    * ``x``: states (N, n).
+    * ``create_graph``: keep the graph.
+    """
+    from .residuals import SteadyStateHJB  # residuals builds on this module
+
+    warnings.warn("pinn.hjb_residual is deprecated: use pinnhjb.residuals.SteadyStateHJB(system, value_fn)"
+                  ".evaluate(x)", DeprecationWarning, stacklevel=2)
+    return SteadyStateHJB(system, value_fn).evaluate(x, create_graph=create_graph)

@@ -16,6 +16,7 @@ import torch
 
 from . import metrics as _metrics
 from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
+from .residuals import SteadyStateHJB
 from .training import TrainHistory
 
 Tensor = torch.Tensor
@@ -73,9 +74,9 @@ class _ValueSolution:
         return u.numpy() if is_numpy else u
 
     def residual_field(self, x):
-        """E_e(x; V(., 0)) of eq. (flow_res) at the given states."""
+        """E_e(x; V(., 0)) (eq-ee) at the given states."""
         xt, is_numpy = self._prepare(x)
-        e = _metrics.flow_residual_field(self.system, self._value_fn(0.0), xt)
+        e = SteadyStateHJB(self.system, self._value_fn(0.0)).field(xt)
         return e.numpy() if is_numpy else e
 
     def evaluate(self, points_per_dim: int | None = None) -> dict:

@@ -1,9 +1,10 @@
 """Training one stage: the finite-horizon PINN of Algorithm 1 and the direct steady-state baseline.
 
-The loss is the paper's eq. (MSE): MSE_e (flow residual F_e) + MSE_b (terminal residual F_b) + MSE_in
-(origin residual F_in); under the ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue` the last two are zero
-by construction and only MSE_e is minimised: by Adam and L-BFGS, or (our default) by Levenberg-Marquardt on the
-per-point residuals (:mod:`pinnhjb.gauss_newton`). f, g, Q and the terminal cost phi (with its gradient) are
+The loss is the paper's eq-mse: MSE_e (flow residual F_e, eq-fe) + MSE_b (terminal residual F_b, eq-fb) + MSE_in
+(origin residual F_in, eq-fin); under the ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue` the last two are
+zero by construction and only MSE_e is minimised: by Adam and L-BFGS, or (our default) by Levenberg-Marquardt on
+the per-point residuals (:mod:`pinnhjb.gauss_newton`). The residuals and their Jacobians are the objects of
+:mod:`pinnhjb.residuals`. f, g, Q and the terminal cost phi (with its gradient) are
 evaluated once per stage on a pool of states and then indexed, so a frozen chain of previous stages
 costs nothing per step.
 """
@@ -15,18 +16,17 @@ import warnings
 from dataclasses import dataclass, field
 
 import torch
-from torch import nn
-from torch.func import functional_call, grad
 from tqdm.auto import tqdm
 
 from .config import TrainConfig
 from .gauss_newton import DivergenceError, FlatParameters, levenberg_marquardt
-from .jacobian import residual_jacobian
 from .pinn import FiniteHorizonValue, SteadyStateValue, ValueTerminalCost, gradient
+from .residuals import Residual, get_residual
 
 Tensor = torch.Tensor
 
-__all__ = ["TrainHistory", "train_finite_horizon", "train_steady_state", "resolve_device", "DTYPES"]
+__all__ = ["TrainHistory", "StatePool", "shared_times", "train_finite_horizon", "train_steady_state", "resolve_device",
+           "DTYPES"]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -79,8 +79,15 @@ def _check_finite(values: Tensor, x: Tensor, what: str, hint: str):
                          f"x = {x[bad][0].detach().cpu().tolist()}; {hint}")
 
 
-class _Data:
-    """States with cached f(x), g(x), Q(x), phi(x), grad phi(x); indexed to form batches."""
+class StatePool:
+    """States with cached f(x), g(x), Q(x), phi(x), grad phi(x); indexed to form batches.
+
+    * ``system``: the control-affine system.
+    * ``x``: the states (N, n).
+    * ``terminal``: the terminal cost phi to cache, or None.
+    * ``need_phi_grad``: also cache grad phi (the ansatz's residual needs it).
+    * ``chunk``: states per autograd pass through phi.
+    """
 
     def __init__(self, system, x: Tensor, terminal=None, need_phi_grad: bool = False, chunk: int = 8192):
         self.x = x
@@ -122,112 +129,6 @@ class _Data:
         return out
 
 
-# ---------------------------------------------------------------------- losses
-
-def _finite_horizon_loss(system, model: FiniteHorizonValue, flow: dict, t: Tensor, boundary: dict | None,
-                         t_origin: Tensor | None, shared_times: tuple | None = None) -> Tensor:
-    """MSE of eq. (MSE) for one batch. ``flow`` holds cached states; phi's gradient is added under the ansatz.
-
-    ``shared_times = (times, index)`` says that ``t = times[index]`` (see ``TrainConfig.points_per_time``).
-    """
-    x = flow["x"]
-    gx, gt = model.correction_derivatives(x, t, *(shared_times or (None, None)))
-    if model.ansatz:
-        gx = gx + flow["dphi"]
-    f_e = gt + system.hamiltonian_min(x, gx, flow["fx"], flow["gx"], flow["qx"])
-    loss = (f_e**2).mean()
-    if not model.ansatz:
-        xb = boundary["x"]
-        t_end = torch.full((xb.shape[0],), model.horizon, dtype=xb.dtype, device=xb.device)
-        f_b = model.raw(xb, t_end) - boundary["phi"]
-        f_in = model.raw(torch.zeros(t_origin.shape[0], xb.shape[1], dtype=xb.dtype, device=xb.device), t_origin)
-        loss = loss + (f_b**2).mean() + (f_in**2).mean()
-    return loss
-
-
-def _steady_state_loss(system, model: SteadyStateValue, flow: dict) -> Tensor:
-    """MSE of the steady-state HJB (4): mean E_e^2 (+ V(0)^2 when not enforced by the ansatz)."""
-    x = flow["x"].detach().requires_grad_(True)
-    v = model(x)
-    (gx,) = torch.autograd.grad(v.sum(), x, create_graph=True)
-    e = system.hamiltonian_min(x, gx, flow["fx"], flow["gx"], flow["qx"])
-    loss = (e**2).mean()
-    if not model.ansatz:
-        loss = loss + model(torch.zeros_like(x[:1])).pow(2).sum()
-    return loss
-
-
-class _Correction(nn.Module):
-    """``model.correction`` as a module's forward, so :func:`torch.func.functional_call` can swap its weights."""
-
-    def __init__(self, model: FiniteHorizonValue):
-        super().__init__()
-        self.model = model
-
-    def forward(self, x: Tensor, t: Tensor) -> Tensor:
-        return self.model.correction(x, t)
-
-
-def _finite_horizon_point_residual(system, model: FiniteHorizonValue, flat: FlatParameters):
-    """F_e(x, t) of one point as a function of the flat weights theta (for Levenberg-Marquardt, ansatz only).
-
-    The point's data are (x, t, grad phi(x), f(x), g(x), Q(x)), the cached terminal gradient included, so a
-    frozen chain of previous stages is not re-evaluated."""
-    wrapper = _Correction(model)
-
-    def correction(theta, x, t):
-        return functional_call(wrapper, flat.unflatten(theta, "model.net."), (x.unsqueeze(0), t.reshape(1)))[0]
-
-    def residual(theta, x, t, dphi, fx, gx, qx):
-        gxc, gtc = grad(correction, argnums=(1, 2))(theta, x, t)
-        return gtc + system.hamiltonian_min(x[None], (gxc + dphi)[None], fx[None], gx[None], qx[None])[0]
-
-    return residual
-
-
-def _finite_horizon_jacobian(system, model: FiniteHorizonValue):
-    """The batched twin of :func:`_finite_horizon_point_residual`: (r, J) over a batch by
-    :func:`pinnhjb.jacobian.residual_jacobian`, with N(x, t) and N(0, t) of the ansatz as two rows per point."""
-    n, T = system.n, model.horizon
-
-    def jacobian(theta, x, t, dphi, fx, gx, qx):
-        N = x.shape[0]
-        z = torch.cat([model.net_inputs(x, t), model.net_inputs(torch.zeros_like(x), t)])
-        dz = torch.diag(model.input_scale(x)).expand(2 * N, n + 1, n + 1)
-
-        def residual_of(out, dout):
-            gxc, gtc = model.ansatz_derivatives(t, out[:N], out[N:], dout[:N, :n], dout[:N, n], dout[N:, n])
-            return gtc + system.hamiltonian_min(x, gxc + dphi, fx, gx, qx)
-
-        return residual_jacobian(model.net, theta, z, dz, residual_of, copies=2)
-
-    return jacobian
-
-
-def _steady_state_jacobian(system, model: SteadyStateValue):
-    """The batched twin of :func:`_steady_state_point_residual` (V = N(x) - N(0): grad V = grad N(x))."""
-
-    def jacobian(theta, x, fx, gx, qx):
-        dz = torch.diag(model.scale_x_derivative(x)).expand(x.shape[0], system.n, system.n)
-        return residual_jacobian(model.net, theta, model.scale_x(x), dz,
-                                 lambda out, dout: system.hamiltonian_min(x, dout, fx, gx, qx))
-
-    return jacobian
-
-
-def _steady_state_point_residual(system, model: SteadyStateValue, flat: FlatParameters):
-    """E_e(x) of eq. (flow_res) for one point as a function of the flat weights (ansatz only)."""
-
-    def value(theta, x):
-        return functional_call(model, flat.unflatten(theta, "net."), (x.unsqueeze(0),))[0]
-
-    def residual(theta, x, fx, gx, qx):
-        gv = grad(value, argnums=1)(theta, x)
-        return system.hamiltonian_min(x[None], gv[None], fx[None], gx[None], qx[None])[0]
-
-    return residual
-
-
 # ---------------------------------------------------------------------- the optimisation loop
 
 def _lr_factor(config: TrainConfig):
@@ -246,7 +147,9 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
     Levenberg-Marquardt.
 
     ``sample(size)`` returns a fresh batch; ``epochs()`` yields lists of mini-batches (fixed data);
-    ``lm = (flat, point_residual, lm_sample, jacobian)`` for the Levenberg-Marquardt phase (see :mod:`.gauss_newton`).
+    ``lm = (flat, residual, lm_sample)`` for the Levenberg-Marquardt phase (see :mod:`.gauss_newton`): the network's
+    flat weights, the :class:`~pinnhjb.residuals.Residual` whose per-point form and Jacobian it uses, and a sampler
+    of its per-point arguments.
     """
     params = list(params)
     hist = TrainHistory()
@@ -340,7 +243,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         hist.final_loss = last
     iterations = 0
     if config.lm_steps > 0:
-        flat, point_residual, lm_sample, jacobian = lm
+        flat, residual, lm_sample = lm
         done = step + evals
 
         def on_step(k, loss, damping):
@@ -354,10 +257,10 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
             # the coarse level ends on a stall: without the stall rule, lm_points throughout
             coarse = config.lm_points_coarse if config.lm_min_progress is not None else None
             points = (config.lm_points,) if coarse is None else (coarse, config.lm_points)
-            result = levenberg_marquardt(flat.get(), point_residual, lm_sample, config.lm_steps, points,
-                                         damping=config.lm_damping, max_time=left, on_step=on_step,
-                                         min_progress=config.lm_min_progress,
-                                         stall_windows=config.lm_stall_windows, desc=desc, jacobian=jacobian)
+            result = levenberg_marquardt(flat.get(), residual.point_residual(flat), lm_sample, config.lm_steps,
+                                         points, damping=config.lm_damping, max_time=left, on_step=on_step,
+                                         min_progress=config.lm_min_progress, stall_windows=config.lm_stall_windows,
+                                         desc=desc, jacobian=residual.jacobian())
             flat.set(result.theta)
             iterations = result.steps
             hist.final_loss = result.loss
@@ -381,38 +284,67 @@ def _uniform(gen, size: int, scale: float, dtype, device) -> Tensor:
     return (scale * torch.rand(size, generator=gen, dtype=torch.float64)).to(dtype=dtype, device=device)
 
 
-def _shared_times(gen, size: int, points_per_time: int, T: float, dtype, device) -> tuple[Tensor, tuple]:
-    """``size`` collocation times in [0, T] drawn as ceil(size / points_per_time) fresh times, each shared by
-    ``points_per_time`` points in turn: returns (t, (times, index)) with t = times[index]."""
+def shared_times(gen, size: int, points_per_time: int, T: float, dtype, device) -> tuple[Tensor, tuple]:
+    """Collocation times in [0, T], each of ceil(size / points_per_time) fresh times shared by that many points.
+
+    * ``gen``: the CPU random generator.
+    * ``size``: the number of points.
+    * ``points_per_time``: points per fresh time, in turn.
+    * ``T``: the horizon.
+    * ``dtype``, ``device``: of the result.
+
+    Returns (t, (times, index)) with t = times[index].
+    """
     k = -(-size // points_per_time)
     times = _uniform(gen, k, T, dtype, device)
     index = torch.arange(size, device=device) % k
     return times[index], (times, index)
 
 
+def _residual(system, model, residual, default: str) -> Residual:
+    """The residual object of form ``residual`` (a name, a class or None for ``default``) on ``model``."""
+    form = get_residual(default if residual is None else residual)
+    if form.ansatz is not None and form.ansatz != model.ansatz:
+        raise ValueError(f"the residual form {form.name!r} trains a model with ansatz={form.ansatz}; this model has "
+                         f"ansatz={model.ansatz}")
+    return form(system, model)
+
+
 def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig, seed: int = 0,
-                         progress: bool = True, desc: str = "stage") -> TrainHistory:
-    """Train ``model`` in place on the finite-horizon HJB over Omega x [0, model.horizon] (Algorithm 1)."""
+                         progress: bool = True, desc: str = "stage",
+                         residual: str | type[Residual] | None = None) -> TrainHistory:
+    """Train ``model`` in place on the finite-horizon HJB (eq-hjbt) over Omega x [0, model.horizon] (Algorithm 1).
+
+    * ``system``: the control-affine system.
+    * ``model``: the stage's value network, trained in place.
+    * ``config``: the training recipe.
+    * ``seed``: seeds the collocation points.
+    * ``progress``: show a progress bar.
+    * ``desc``: the stage's label (progress bar, errors).
+    * ``residual``: the PDE form (:mod:`pinnhjb.residuals`), a registered name or class; None: ``"hjbt"`` under
+      the ansatz, ``"hjbt_soft"`` without.
+    """
+    res = _residual(system, model, residual, "hjbt" if model.ansatz else "hjbt_soft")
     p = next(model.parameters())
     dtype, device = p.dtype, p.device
     gen = _generator(seed)
     T = model.horizon
     terminal = model.terminal_cost
     n_pool = config.pool_size if config.sampling == "resample" else config.n_flow
-    pool = _Data(system, system.sample(n_pool, gen, dtype=dtype, device=device), terminal,
-                 need_phi_grad=model.ansatz)
+    pool = StatePool(system, system.sample(n_pool, gen, dtype=dtype, device=device), terminal,
+                     need_phi_grad=model.ansatz)
     bnd = None
     if not model.ansatz:
         n_b = config.n_boundary if config.sampling == "fixed" else config.pool_size
-        bnd = _Data(system, system.sample(n_b, gen, dtype=dtype, device=device), terminal)
+        bnd = StatePool(system, system.sample(n_b, gen, dtype=dtype, device=device), terminal)
 
     def batch_loss(batch):
-        return _finite_horizon_loss(system, model, *batch)
+        return res.loss(*batch)
 
     def sample(size):
         flow = pool.take(_randint(gen, len(pool), size, device))
         if model.ansatz and config.points_per_time is not None and config.points_per_time > 1:
-            t, shared = _shared_times(gen, size, config.points_per_time, T, dtype, device)
+            t, shared = shared_times(gen, size, config.points_per_time, T, dtype, device)
             return flow, t, None, None, shared
         t = _uniform(gen, size, T, dtype, device)
         if model.ansatz:
@@ -442,23 +374,32 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
         def lm_sample(size):
             flow = pool.take(_randint(gen, len(pool), size, device))
             t = _uniform(gen, size, T, dtype, device)
-            return flow["x"], t, flow["dphi"], flow["fx"], flow["gx"], flow["qx"]
+            return res.point_arguments(flow, t)
 
-        flat = FlatParameters(model.net)
-        lm = (flat, _finite_horizon_point_residual(system, model, flat), lm_sample,
-              _finite_horizon_jacobian(system, model))
+        lm = (FlatParameters(model.net), res, lm_sample)
     params = [q for q in model.net.parameters()]
     return _optimize(params, batch_loss, sample, epochs, config, desc, progress, lm)
 
 
 def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, seed: int = 0,
-                       progress: bool = True, desc: str = "steady state") -> TrainHistory:
-    """Train ``model`` in place on the steady-state HJB (4) directly (the paper's T = infinity baseline)."""
+                       progress: bool = True, desc: str = "steady state",
+                       residual: str | type[Residual] | None = None) -> TrainHistory:
+    """Train ``model`` in place on the steady-state HJB (eq-hjb) directly (the paper's T = infinity baseline).
+
+    * ``system``: the control-affine system.
+    * ``model``: the value network V(x), trained in place.
+    * ``config``: the training recipe.
+    * ``seed``: seeds the collocation points.
+    * ``progress``: show a progress bar.
+    * ``desc``: the label (progress bar, errors).
+    * ``residual``: the PDE form (:mod:`pinnhjb.residuals`), a registered name or class; None: ``"hjb"``.
+    """
+    res = _residual(system, model, residual, "hjb")
     p = next(model.parameters())
     dtype, device = p.dtype, p.device
     gen = _generator(seed)
     n_pool = config.pool_size if config.sampling == "resample" else config.n_flow
-    pool = _Data(system, system.sample(n_pool, gen, dtype=dtype, device=device))
+    pool = StatePool(system, system.sample(n_pool, gen, dtype=dtype, device=device))
 
     def sample(size):
         return pool.take(_randint(gen, len(pool), size, device))
@@ -471,11 +412,8 @@ def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, see
     lm = None
     if config.lm_steps > 0:
         def lm_sample(size):
-            flow = sample(size)
-            return flow["x"], flow["fx"], flow["gx"], flow["qx"]
+            return res.point_arguments(sample(size), None)
 
-        flat = FlatParameters(model.net)
-        lm = (flat, _steady_state_point_residual(system, model, flat), lm_sample, _steady_state_jacobian(system, model))
-    return _optimize(model.net.parameters(), lambda batch: _steady_state_loss(system, model, batch), sample,
-                     epochs, config, desc, progress, lm)
+        lm = (FlatParameters(model.net), res, lm_sample)
+    return _optimize(model.net.parameters(), res.loss, sample, epochs, config, desc, progress, lm)
 

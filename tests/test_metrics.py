@@ -7,6 +7,7 @@ import torch
 
 import pinnhjb as ph
 from pinnhjb import lq, metrics
+from pinnhjb.residuals import SteadyStateHJB
 
 A = np.array([[1.0, 1.0], [0.0, 2.0]])  # open-loop unstable
 B = np.array([[0.0], [1.0]])
@@ -102,7 +103,7 @@ def test_residual_counts_value_at_origin():
 def test_residual_on_given_points_and_field():
     system = ph.systems.quartic()
     pts = torch.tensor([[0.0, 0.0], [0.3, -0.2], [1.0, 1.0]], dtype=torch.float64)
-    field = metrics.flow_residual_field(system, lambda x: (x**2).sum(-1), pts)
+    field = SteadyStateHJB(system, lambda x: (x**2).sum(-1)).field(pts)
     # E_e(x; |x|^2) = 2x'f + Q - (x2 sin x1)^2 (grad V = 2x, R = 1)
     x1, x2 = pts[:, 0], pts[:, 1]
     by_hand = 2 * (pts * system.f(pts)).sum(-1) + system.Q(pts) - (x2 * torch.sin(x1)) ** 2
@@ -110,7 +111,7 @@ def test_residual_on_given_points_and_field():
     out = metrics.infinite_horizon_residual(system, lambda x: (x**2).sum(-1), points=pts)
     assert out["E_flow"] == pytest.approx(float((by_hand**2).mean()), rel=1e-12)
     with pytest.raises(ValueError, match="points"):
-        metrics.flow_residual_field(system, lambda x: (x**2).sum(-1), torch.zeros(3, 3, dtype=torch.float64))
+        SteadyStateHJB(system, lambda x: (x**2).sum(-1)).field(torch.zeros(3, 3, dtype=torch.float64))
 
 
 def test_default_grid_sizes():

@@ -1,15 +1,13 @@
-"""Value networks and residuals: the hard-constraint ansatz, F_e against the Riccati ODE, autograd gradients."""
+"""Value networks: the hard-constraint ansatz, terminal costs, autograd gradients (the residuals are in
+test_residuals.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
-from torch import nn
 
-import pinnhjb as ph
-from pinnhjb import lq
 from pinnhjb.pinn import (MLP, FiniteHorizonValue, QuadraticTerminalCost, SteadyStateValue, ValueTerminalCost,
-                          ZeroTerminalCost, flow_residual, hjb_residual, value_and_gradients)
+                          ZeroTerminalCost, value_and_gradients)
 
 BOX = [[-1.5, 1.5], [-1.0, 2.0]]
 P_PHI = np.array([[2.0, 0.3], [0.3, 1.0]])
@@ -90,76 +88,6 @@ def test_network_arguments_are_checked():
         FiniteHorizonValue(2, float("nan"), BOX)
 
 
-# ------------------------------------------------------------------------------ F_e on the LQ ground truth
-EXAMPLES = {
-    "2-state": (np.array([[1.0, 1.0], [0.0, 2.0]]), np.array([[0.0], [1.0]]), np.eye(2), np.array([[1.0]])),
-    "3-state-2-inputs": (np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 2.0, -3.0]]),
-                         np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), np.diag([1.0, 2.0, 0.5]),
-                         np.array([[1.0, 0.2], [0.2, 2.0]])),
-}
-
-
-class RiccatiValue(nn.Module):
-    """V(x, t) = x'(P(t) + shift)x with P(t) from the Riccati ODE and dV/dt = x'P'(t)x.
-
-    P(t) comes from numpy, so the time derivative is attached by the identity
-    v = x'Px + (t - stop_grad(t)) x'P'x: the value is unchanged, d/dt = x'P'x, d/dx = 2Px.
-    """
-
-    def __init__(self, riccati: lq.RiccatiSolution, shift=None):
-        super().__init__()
-        self.riccati = riccati
-        n = riccati.A.shape[0]
-        self.shift = torch.zeros(n, n, dtype=torch.float64) if shift is None else torch.as_tensor(shift)
-
-    def forward(self, x, t):
-        t_np = t.detach().numpy()
-        P = torch.as_tensor(self.riccati.at(t_np)) + self.shift
-        dP = torch.as_tensor(self.riccati.derivative(t_np))
-        return (torch.einsum("bi,bij,bj->b", x, P, x)
-                + (t - t.detach()) * torch.einsum("bi,bij,bj->b", x, dP, x))
-
-
-@pytest.mark.parametrize("name", EXAMPLES)
-def test_riccati_value_has_zero_flow_residual(name):
-    A, B, Q, R = EXAMPLES[name]
-    n = A.shape[0]
-    T = 2.0
-    riccati = lq.riccati_ode(A, B, Q, R, T, P_T=np.eye(n))
-    system = ph.systems.linear_quadratic(A, B, Q, R, domain=[[-1, 1]] * n)
-    rng = np.random.default_rng(0)
-    x = torch.tensor(rng.uniform(-1, 1, (100, n)))
-    t = torch.tensor(rng.uniform(0, T, 100))
-
-    exact = flow_residual(system, RiccatiValue(riccati), x, t)
-    assert exact.shape == (100,)
-    assert exact.abs().max() < 1e-9
-
-    # dP/dt from the ODE identity is the actual rate of change of the dense solution (central difference)
-    h = 1e-4
-    t_in = np.clip(t.numpy(), 2 * h, T - 2 * h)
-    fd = (riccati.at(t_in + h) - riccati.at(t_in - h)) / (2 * h)
-    np.testing.assert_allclose(fd, riccati.derivative(t_in), atol=1e-6)
-
-    perturbed = flow_residual(system, RiccatiValue(riccati, shift=0.1 * np.eye(n)), x, t)
-    assert perturbed.abs().max() > 1e-2
-    assert (perturbed**2).mean() > 1e6 * (exact**2).mean()
-
-
-def test_care_value_has_zero_steady_state_residual_and_flow_residual():
-    A, B, Q, R = EXAMPLES["2-state"]
-    system = ph.systems.linear_quadratic(A, B, Q, R, domain=[[-1, 1]] * 2)
-    P = torch.as_tensor(lq.care(A, B, Q, R))
-
-    class Stationary(nn.Module):
-        def forward(self, x, t):
-            return torch.einsum("bi,ij,bj->b", x, P, x) + 0.0 * t
-
-    x = states(50)
-    assert flow_residual(system, Stationary(), x, 0.7).abs().max() < 1e-10
-    assert hjb_residual(system, lambda z: Stationary()(z, torch.zeros(z.shape[0], dtype=z.dtype)), x).abs().max() < 1e-10
-
-
 # ------------------------------------------------------------------------------ autograd gradients
 def test_value_and_gradients_match_torch_func_and_finite_differences():
     model = model64(1.3, QuadraticTerminalCost(P_PHI), activation="tanh")
@@ -186,28 +114,6 @@ def test_value_and_gradients_match_torch_func_and_finite_differences():
     np.testing.assert_allclose(gx.numpy(), fd_x.numpy(), atol=1e-7)
     np.testing.assert_allclose(gt.numpy(), fd_t.numpy(), atol=1e-7)
     assert gx.abs().max() > 1e-3 and gt.abs().max() > 1e-3
-
-
-def test_flow_residual_is_dvdt_plus_min_hamiltonian():
-    system = ph.systems.pendulum()
-    model = model64(1.0, QuadraticTerminalCost(np.eye(2)))
-    # this model's training box BOX differs from the pendulum's; that is fine for a pointwise identity
-    x = states(20)
-    t = torch.full((20,), 0.4, dtype=torch.float64)
-    _, gx, gt = value_and_gradients(model, x, t)
-    by_hand = (gt + (gx * system.f(x)).sum(-1) + system.Q(x)
-               - 0.25 * (gx[:, 1] * (81.0 / 16.0)) ** 2)  # g = [0, 1/J]', R = 1
-    np.testing.assert_allclose(flow_residual(system, model, x, t).numpy(), by_hand.numpy(), rtol=1e-12, atol=1e-12)
-
-
-def test_create_graph_allows_training_through_the_residual():
-    system = ph.systems.pendulum()
-    model = model64(1.0)
-    x = states(16)
-    res = flow_residual(system, model, x, 0.5, create_graph=True)
-    (res**2).mean().backward()
-    grads = [p.grad for p in model.net.parameters()]
-    assert all(g is not None for g in grads) and any(g.abs().max() > 0 for g in grads)
 
 
 def test_freshly_built_model_can_be_evaluated():

@@ -9,6 +9,7 @@ import torch
 
 import pinnhjb as ph
 from pinnhjb import metrics, pinn
+from pinnhjb.residuals import SteadyStateHJB
 from pinnhjb.systems import ControlAffineSystem
 
 
@@ -81,7 +82,7 @@ def test_quartic_printed_cost_leaves_residual_minus_x2_to_the_fourth():
     assert paper.value_star is None and paper.policy_star is None  # V* is not optimal for the printed Q
     value_star = ph.systems.quartic().value_star
     x = paper.grid(41)
-    residual = pinn.hjb_residual(paper, value_star, x)
+    residual = SteadyStateHJB(paper, value_star).evaluate(x)
     np.testing.assert_allclose(residual.numpy(), -(x[:, 1] ** 4).numpy(), atol=1e-12)
     assert residual.abs().max() > 1.0  # clearly nonzero on Omega = [-1.2, 1.2]^2
 

@@ -27,7 +27,7 @@ from pinnhjb.gauss_newton import DivergenceError
 from pinnhjb.pinn import FiniteHorizonValue, ValueTerminalCost
 from pinnhjb.solution import FiniteHorizonSolution, Stage
 from pinnhjb.storage import PERTURB_ENV, CheckpointError
-from pinnhjb.training import TrainHistory, _Data
+from pinnhjb.training import StatePool, TrainHistory
 
 # ------------------------------------------------------------------------------ tiny systems and configs
 LM = ph.TrainConfig.preset("default", width=4, depth=1, lm_steps=3, lm_points=64, lm_points_coarse=None,
@@ -191,7 +191,7 @@ CASES = [
      r"does not contain the origin"),
     ("f-nan-on-part-of-box", lambda c: system(f=f_nan_far, train_domain=[[-1.5, 1.5]] * 2), ValueError,
      r"f\(x\) is NaN or infinite at \d+ of \d+ states .* e\.g\. x = "),
-    ("f-nan-in-training-pool", lambda c: _Data(system(), torch.tensor([[0.1, 0.2], [np.nan, 0.0]],
+    ("f-nan-in-training-pool", lambda c: StatePool(system(), torch.tensor([[0.1, 0.2], [np.nan, 0.0]],
                                                                         dtype=torch.float64)),
      ValueError, r"f\(x\) is NaN or infinite at 1 of 2 training states"),
     ("f0-nan", lambda c: system(f=lambda x: f_pend(x) + torch.where((x == 0).all(-1, keepdim=True),
