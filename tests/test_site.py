@@ -12,7 +12,8 @@ The shell (theme, configuration, ``book/_ext``, ``book/_theme``):
 * every ``<img>`` loaded; no request left localhost; no local request failed; no page holds a widget view;
 * no console errors (console messages of type error, and uncaught page errors);
 * on a phone the navigation drawer opens when its (visible) menu button is pressed and shows links a finger
-  can reach; on a desktop the menu button hides the sidebar and shows it again;
+  can reach, and the contents button shows the page's sections; on a desktop the menu button hides the
+  sidebar and shows it again;
 * one search box on the desktop, and the search page finds words offline;
 * no horizontal page overflow (``document.scrollingElement.scrollWidth <= innerWidth + 1``), and no wide
   equation, table, figure or code block is cut off by a box that does not scroll;
@@ -341,6 +342,9 @@ _NAV_LINKS = """() => Array.from(document.querySelectorAll(
         return !!hit && (hit === a || a.contains(hit));  // reachable: nothing covers it
     }).map(a => a.textContent.trim())"""
 
+_TOC_LINKS = _NAV_LINKS.replace("#pst-primary-sidebar-modal", "#pst-secondary-sidebar-modal").replace(
+    ".bd-sidebar-primary", ".bd-sidebar-secondary")
+
 _LINKS = """() => Array.from(document.querySelectorAll('article.bd-article a[href]'))
     .filter(a => !a.closest('.prev-next-area, .bd-footer-article, nav'))
     .map(a => new URL(a.getAttribute('href'), location.href).pathname)"""
@@ -414,6 +418,15 @@ def _check_drawer(page, where: str, size: str, problems: list[str]):
         page.keyboard.press("Escape")
         if _nav_links_when(page, opened=False):
             problems.append(f"{where}: the navigation drawer does not close on Escape")
+            return
+        contents = page.locator("button.secondary-toggle:visible")  # "on this page", where a page has one
+        if contents.count():
+            contents.first.click()
+            try:
+                page.wait_for_function(f"() => ({_TOC_LINKS})().length > 0", timeout=5_000)
+            except Exception:  # playwright's TimeoutError
+                problems.append(f"{where}: pressing the contents button shows no link to a section of the page")
+            page.keyboard.press("Escape")
     else:
         if len(closed) < MIN_DRAWER_LINKS:
             problems.append(f"{where}: the sidebar shows {len(closed)} navigation links on a desktop")
@@ -616,7 +629,7 @@ def test_no_console_errors(sweep):
 
 
 def test_navigation_drawer_opens(sweep):
-    _report(sweep, "drawer", "navigation (phone drawer, desktop menu button)")
+    _report(sweep, "drawer", "navigation (phone menu and contents drawers, desktop menu button)")
 
 
 def test_one_search_box(sweep):
