@@ -6,7 +6,7 @@
   mean over :data:`MC_SAMPLES` uniform points of Omega, reported with its standard error (``E_stderr``) and
   sample size (``E_samples``), evaluated in batches so memory stays bounded in any dimension.
 * E_e(x) itself, on a grid for plotting (the paper's Figures 1-3), is
-  :meth:`pinnhjb.residuals.SteadyStateHJB.field` (``flow_residual_field`` is its deprecated alias).
+  :meth:`pinnhjb.residuals.SteadyStateHJB.field`.
 * :func:`optimality_errors` — max and mean-square errors of V and mu against a known V*, mu*.
 * :func:`closed_loop` — simulate ``xdot = f(x) + g(x) mu(x)`` with a batched RK4 and accumulate the cost
   J(mu; x0) of eq. (2), so a policy is judged by what it does.
@@ -17,7 +17,6 @@ float64 on the CPU (solution objects move them to their own device and precision
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Callable
 
@@ -31,7 +30,7 @@ from .residuals import SteadyStateHJB
 Tensor = torch.Tensor
 ValueFn = Callable[[Tensor], Tensor]
 
-__all__ = ["default_points_per_dim", "evaluation_grid", "infinite_horizon_residual", "flow_residual_field",
+__all__ = ["default_points_per_dim", "evaluation_grid", "infinite_horizon_residual",
            "optimality_errors", "policy_of", "closed_loop", "ClosedLoopResult", "quadratic_fields",
            "GRID_MAX_POINTS", "MC_SAMPLES", "uses_grid"]
 
@@ -83,18 +82,6 @@ def _monte_carlo_batches(system, samples: int = MC_SAMPLES, seed: int = MC_SEED,
 
 def _chunks(x: Tensor, size: int = 16384):
     return torch.split(x, size)
-
-
-def flow_residual_field(system, value_fn: ValueFn, points: Tensor) -> Tensor:
-    """Deprecated alias of ``SteadyStateHJB(system, value_fn).field(points)``: E_e (eq-ee) at every point.
-
-    * ``system``: the control-affine system.
-    * ``value_fn``: a batched value function x (N, n) -> V (N,).
-    * ``points``: states (N, n).
-    """
-    warnings.warn("metrics.flow_residual_field is deprecated: use "
-                  "pinnhjb.residuals.SteadyStateHJB(system, value_fn).field(points)", DeprecationWarning, stacklevel=2)
-    return SteadyStateHJB(system, value_fn).field(points)
 
 
 def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None = None,

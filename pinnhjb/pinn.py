@@ -10,12 +10,10 @@
   :class:`ValueTerminalCost` (a frozen previous stage at t = 0, the terminal cost of the horizon
   extension, eq. (HJBinc)) and :class:`CallableTerminalCost` for a user's function.
 * :func:`gradient` and :func:`value_and_gradients` differentiate a value by autograd; no finite differences
-  anywhere. The residuals themselves (F_e, F_b, F_in, E_e) are the objects of :mod:`pinnhjb.residuals`;
-  :func:`flow_residual` and :func:`hjb_residual` are deprecated aliases of them.
+  anywhere. The residuals themselves (F_e, F_b, F_in, E_e) are the objects of :mod:`pinnhjb.residuals`.
 """
 from __future__ import annotations
 
-import warnings
 from typing import Callable
 
 import numpy as np
@@ -34,7 +32,7 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
 
 __all__ = [
     "MLP", "FiniteHorizonValue", "SteadyStateValue", "ZeroTerminalCost", "QuadraticTerminalCost",
-    "ValueTerminalCost", "CallableTerminalCost", "value_and_gradients", "flow_residual", "hjb_residual",
+    "ValueTerminalCost", "CallableTerminalCost", "value_and_gradients",
     "gradient",
 ]
 
@@ -295,35 +293,3 @@ def value_and_gradients(model: FiniteHorizonValue, x: Tensor, t: Tensor | float,
         v = model(x, t)
         gx, gt = torch.autograd.grad(v.sum(), (x, t), create_graph=create_graph)
     return v, gx, gt
-
-
-def flow_residual(system, model: FiniteHorizonValue, x: Tensor, t: Tensor | float,
-                  create_graph: bool = False) -> Tensor:
-    """Deprecated alias of ``residuals.FiniteHorizonHJB(system, model).evaluate(x, t)``: F_e (eq-fe) per point.
-
-    * ``system``: the control-affine system.
-    * ``model``: a value model (x, t) -> v.
-    * ``x``: states (N, n).
-    * ``t``: times, (N,) or a scalar.
-    * ``create_graph``: keep the graph.
-    """
-    from .residuals import FiniteHorizonHJB  # residuals builds on this module
-
-    warnings.warn("pinn.flow_residual is deprecated: use pinnhjb.residuals.FiniteHorizonHJB(system, model)"
-                  ".evaluate(x, t)", DeprecationWarning, stacklevel=2)
-    return FiniteHorizonHJB(system, model).evaluate(x, t, create_graph=create_graph)
-
-
-def hjb_residual(system, value_fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> Tensor:
-    """Deprecated alias of ``residuals.SteadyStateHJB(system, value_fn).evaluate(x)``: E_e (eq-ee) per point.
-
-    * ``system``: the control-affine system.
-    * ``value_fn``: a batched value function x (N, n) -> V (N,).
-    * ``x``: states (N, n).
-    * ``create_graph``: keep the graph.
-    """
-    from .residuals import SteadyStateHJB  # residuals builds on this module
-
-    warnings.warn("pinn.hjb_residual is deprecated: use pinnhjb.residuals.SteadyStateHJB(system, value_fn)"
-                  ".evaluate(x)", DeprecationWarning, stacklevel=2)
-    return SteadyStateHJB(system, value_fn).evaluate(x, create_graph=create_graph)

@@ -3,7 +3,6 @@ and whole-model forms against each other, their structured Jacobians against tor
 a new PDE form added by one class and a registration line."""
 from __future__ import annotations
 
-import warnings
 
 import numpy as np
 import pytest
@@ -12,7 +11,7 @@ from torch import nn
 from torch.func import jacrev, vmap
 
 import pinnhjb as ph
-from pinnhjb import lq, metrics, pinn, residuals, training
+from pinnhjb import lq, residuals, training
 from pinnhjb.gauss_newton import FlatParameters, levenberg_marquardt
 from pinnhjb.pinn import FiniteHorizonValue, QuadraticTerminalCost, SteadyStateValue, value_and_gradients
 from pinnhjb.residuals import FiniteHorizonHJB, SoftFiniteHorizonHJB, SteadyStateHJB
@@ -322,23 +321,3 @@ def test_a_new_pde_form_is_one_class_and_a_registration_line(monkeypatch):
     assert history.final_loss < 2e-2 * before and after < 2e-2 * before
     # it solved its own PDE, not the HJB (which has the control term)
     assert hjb > 10 * after
-
-
-# ------------------------------------------------------------------------------ deprecated aliases
-def test_documented_aliases_warn_and_give_the_same_numbers():
-    system = ph.systems.pendulum()
-    model = model64(1.0, QuadraticTerminalCost(np.eye(2)))
-    x, t = states(10), torch.full((10,), 0.3, dtype=torch.float64)
-    value = lambda z: (z**2).sum(-1)  # noqa: E731
-    with pytest.warns(DeprecationWarning, match="FiniteHorizonHJB"):
-        old = pinn.flow_residual(system, model, x, t)
-    torch.testing.assert_close(old, FiniteHorizonHJB(system, model).evaluate(x, t), rtol=0, atol=0)
-    with pytest.warns(DeprecationWarning, match="SteadyStateHJB"):
-        old = pinn.hjb_residual(system, value, x)
-    torch.testing.assert_close(old, SteadyStateHJB(system, value).evaluate(x), rtol=0, atol=0)
-    with pytest.warns(DeprecationWarning, match="SteadyStateHJB"):
-        old = metrics.flow_residual_field(system, value, x)
-    torch.testing.assert_close(old, SteadyStateHJB(system, value).field(x), rtol=0, atol=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        metrics.infinite_horizon_residual(system, value, points=x)  # the package itself uses no alias
