@@ -5,6 +5,9 @@
 # output depends on a live training run or holds a widget are tagged nbval-ignore-output, and their asserts
 # still run), and open the built site in headless Chromium (tests/test_site.py; it skips without Chromium
 # unless PINNHJB_REQUIRE_SITE=1, which .ci/run sets).
+# Then the notebooks a second time with every loaded checkpoint's weights perturbed by a relative 1e-13
+# (PINNHJB_PERTURB_WEIGHTS, pinnhjb.storage): rounding noise of another CPU or BLAS must not change a printed
+# number, so the stored outputs must still match.
 # The tests run even when the build fails, so one run reports both; the exit status is then a failure.
 # pytest's exit code 5 (no tests collected) is turned into a failure.
 set -uo pipefail
@@ -20,6 +23,16 @@ rc=$?
 if [ "$rc" -eq 5 ]; then
   echo "pytest collected no tests: failing on purpose" >&2
   exit 1
+fi
+echo "== notebooks again, checkpoint weights perturbed by a relative 1e-13 (PINNHJB_PERTURB_WEIGHTS)"
+PINNHJB_PERTURB_WEIGHTS=1e-13 .venv/bin/python -m pytest notebooks --nbval --nbval-current-env -q "$@"
+perturbed_rc=$?
+if [ "$perturbed_rc" -eq 5 ]; then
+  echo "pytest collected no notebooks in the perturbed run: failing on purpose" >&2
+  perturbed_rc=1
+fi
+if [ "$rc" -eq 0 ]; then
+  rc=$perturbed_rc
 fi
 if [ "$rc" -eq 0 ] && [ "$build_rc" -ne 0 ]; then
   exit "$build_rc"
