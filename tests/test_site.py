@@ -72,6 +72,7 @@ RAW_LABEL_PATTERNS = {
     "an equation named by its label": re.compile(r"\beqs?\.\s*\((?=[^)\s]*[A-Za-z])[\w:.-]+\)"),
     "a label in parentheses": re.compile(r"\((?=[\w-]*[A-Za-z])[A-Za-z0-9]+_[\w-]+\)"),
     "an eq- label": re.compile(r"(?<![\w-])eq-[\w-]+"),
+    "an equation number in double parentheses": re.compile(r"\(\(\d+(?:\.\d+)*\)\)"),  # ({eq}`x`)
 }
 ROLE_KEY = re.compile(r"\[(?=[a-z0-9_:-]*[a-z]{2})[a-z][a-z0-9_:-]*\]")  # [third]: an unresolved citation key
 
