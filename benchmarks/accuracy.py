@@ -26,13 +26,13 @@ from pathlib import Path
 import torch
 
 import pinnhjb as ph
-from pinnhjb import reproduce
+from pinnhjb import paper
 from pinnhjb.storage import provenance
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
-# The paper's reported numbers (Table 1 and Section 6.2), quoted once in pinnhjb.reproduce.CASES.
-PAPER_E = {c.system: c.paper for c in reproduce.CASES if c.name in ("pendulum_extension", "quartic_extension")}
+# The paper's reported numbers (Table 1 and Section 6.2), quoted once in pinnhjb.paper.CASES.
+PAPER_E = {c.system: c.paper for c in paper.CASES if c.name in ("pendulum_extension", "quartic_extension")}
 CASES = {
     "pendulum": dict(first=1.0, to=4.0, step=1.0),
     "quartic": dict(first=0.5, to=4.0, step=0.5),
