@@ -5,11 +5,17 @@ on [0, T_1] with terminal cost phi; stage k solves eq. (HJBinc) on [0, T_k - T_{
 V_{T_{k-1}}(., 0) (Theorem 2), so ``value(x, 0)`` of the whole chain is V_{T_K}(x, 0) and, more generally,
 ``value(x, t)`` is V_{T_K}(x, t) for any t in [0, T_K]. A :class:`SteadyStateSolution` is the direct
 steady-state PINN (the paper's T = infinity).
+
+Results are dataclasses with every field declared. Their metrics are computed once, by the solver (or read
+from a checkpoint), and passed in when the result is built; nothing in the package sets a field of a result
+afterwards: a changed result is a new one, made with :func:`dataclasses.replace` (as ``solve_until`` does to
+record its ``tol``). A :class:`Stage` is frozen.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -19,6 +25,10 @@ from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
 from .residuals import SteadyStateHJB
 from .training import TrainHistory
 
+if TYPE_CHECKING:
+    from .config import TrainConfig
+    from .systems import ControlAffineSystem
+
 Tensor = torch.Tensor
 
 __all__ = ["Stage", "FiniteHorizonSolution", "SteadyStateSolution"]
@@ -26,8 +36,6 @@ __all__ = ["Stage", "FiniteHorizonSolution", "SteadyStateSolution"]
 
 class _ValueSolution:
     """Shared evaluation: V, grad V, mu = -1/2 R^{-1} g' grad V, E and errors, for numpy or torch input."""
-
-    system = None
 
     def _model_value(self, x: Tensor, t: float) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -93,12 +101,20 @@ class _ValueSolution:
                                     t_final=t_final, dt=dt)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Stage:
-    """One trained horizon: the network, where it sits in the chain, its training history and metrics.
+    """One trained horizon of a chain: its network, where it sits in the chain, its training history and metrics.
 
-    ``start`` is the horizon already covered before this stage (T_{k-1}; 0 for the first), ``length`` its
-    own time span, so the stage answers V_{end}(., 0) with ``end = start + length``.
+    * ``model``: the trained network v(x, t) on [0, ``length``], frozen (no gradients), with its terminal cost.
+    * ``start``: the horizon covered before this stage (T_{k-1}; 0 for the first).
+    * ``history``: the stage's training log (:class:`~pinnhjb.training.TrainHistory`).
+    * ``seed``: the seed it was trained with (the solver's seed + k for stage k, counted from 0).
+    * ``metrics``: E, E_zero and, when the system knows V*, the errors against V*, mu* of the chain ending with
+      this stage (:meth:`FiniteHorizonSolution.evaluate`), computed once when the stage is built; empty when it
+      was never evaluated. The stage holds its own copy.
+
+    ``length`` (= ``model.horizon``) and ``end`` (= ``start + length``, the T_k it answers V_{T_k}(., 0) for)
+    are derived.
     """
 
     model: FiniteHorizonValue
@@ -106,6 +122,9 @@ class Stage:
     history: TrainHistory
     seed: int
     metrics: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "metrics", dict(self.metrics))
 
     @property
     def length(self) -> float:
@@ -116,18 +135,33 @@ class Stage:
         return self.start + self.length
 
 
+@dataclass(eq=False)
 class FiniteHorizonSolution(_ValueSolution):
-    """V_T(x, t) and mu_T(x, t) from a chain of stages (Algorithm 1 + Theorem 2)."""
+    """V_T(x, t) and mu_T(x, t) from a chain of stages (Algorithm 1 + Theorem 2).
 
-    def __init__(self, system, config, stages: list[Stage], terminal_spec: dict, interrupted: bool = False):
-        if not stages:
+    * ``system``: the :class:`~pinnhjb.systems.ControlAffineSystem` it solves.
+    * ``config``: the :class:`~pinnhjb.config.TrainConfig` its stages were trained with.
+    * ``stages``: the chain, stage 1 first (a list of :class:`Stage`, at least one); ``metrics`` are the last's.
+    * ``terminal_spec``: the first stage's terminal cost phi as stored in a checkpoint (``{"kind": ...}``).
+    * ``interrupted``: whether training stopped early on KeyboardInterrupt (the stages done so far are kept).
+    * ``tol``: the E that :meth:`~pinnhjb.FiniteHorizonSolver.solve_until` asked for; None otherwise (``solve``,
+      ``extend``, a loaded checkpoint). ``converged`` is derived from it.
+    * ``provenance``: the versions and time stamp stored with the checkpoint it was loaded from
+      (:func:`pinnhjb.storage.provenance`); None for a solution trained in this session.
+    """
+
+    system: ControlAffineSystem
+    config: TrainConfig
+    stages: list[Stage]
+    terminal_spec: dict
+    interrupted: bool = False
+    tol: float | None = None
+    provenance: dict | None = None
+
+    def __post_init__(self):
+        if not self.stages:
             raise ValueError("a FiniteHorizonSolution needs at least one stage")
-        self.system = system
-        self.config = config
-        self.stages = list(stages)
-        self.terminal_spec = terminal_spec
-        self.interrupted = interrupted
-        self.tol = None  # set by solve_until: the E it asked for
+        self.stages = list(self.stages)
 
     def _models(self):
         return [s.model for s in self.stages]
@@ -190,18 +224,36 @@ class FiniteHorizonSolution(_ValueSolution):
                 f"E={e if e is None else f'{e:.3e}'}, wall_time={self.wall_time:.1f}s)")
 
 
+@dataclass(eq=False)
 class SteadyStateSolution(_ValueSolution):
-    """The direct steady-state PINN V(x) (the paper's T = infinity column of Table 1)."""
+    """The direct steady-state PINN V(x) (the paper's T = infinity column of Table 1).
 
-    def __init__(self, system, config, model: SteadyStateValue, history: TrainHistory, seed: int,
-                 metrics: dict | None = None):
-        self.system = system
-        self.config = config
-        self.model = model
-        self.history = history
-        self.seed = seed
-        self.metrics = metrics or {}
-        self.converged = None  # no tolerance is asked of the steady-state PINN (see FiniteHorizonSolution)
+    * ``system``: the :class:`~pinnhjb.systems.ControlAffineSystem` it solves.
+    * ``config``: the :class:`~pinnhjb.config.TrainConfig` it was trained with.
+    * ``model``: the trained network V(x), frozen (no gradients).
+    * ``history``: its training log (:class:`~pinnhjb.training.TrainHistory`).
+    * ``seed``: the seed it was trained with.
+    * ``metrics``: E, E_zero and, when the system knows V*, the errors against V*, mu* (:meth:`evaluate`),
+      computed once when the solution is built; empty when it was never evaluated. The solution holds its own copy.
+    * ``provenance``: the versions and time stamp stored with the checkpoint it was loaded from
+      (:func:`pinnhjb.storage.provenance`); None for a solution trained in this session.
+    """
+
+    system: ControlAffineSystem
+    config: TrainConfig
+    model: SteadyStateValue
+    history: TrainHistory
+    seed: int
+    metrics: dict = field(default_factory=dict)
+    provenance: dict | None = None
+
+    def __post_init__(self):
+        self.metrics = dict(self.metrics or {})
+
+    @property
+    def converged(self) -> None:
+        """Always None: no tolerance is asked of the steady-state PINN (see :attr:`FiniteHorizonSolution.converged`)."""
+        return None
 
     def _models(self):
         return [self.model]

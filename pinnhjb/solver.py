@@ -10,12 +10,18 @@ Arguments are checked before any training starts (an error names the argument, t
 expected). Nothing trained is lost: when a later stage fails (e.g. :class:`~pinnhjb.gauss_newton.DivergenceError`),
 the exception carries the stages completed before it as ``exc.partial_solution`` (say so in its notes), and
 ``callback`` has already seen each of them. A stage whose E is no better than that of V = 0 warns.
+
+Each result's metrics are computed once, when the solver builds it, by :meth:`FiniteHorizonSolver.evaluate`: by
+default E and the errors against V* on ``config.eval_points_per_dim`` points per axis
+(:meth:`~pinnhjb.solution.FiniteHorizonSolution.evaluate`); the ``evaluate=`` argument replaces that with any
+function of the result (e.g. a benchmark's own timed measure on its own points, or ``lambda sol: {}`` to skip it).
 """
 from __future__ import annotations
 
 import math
 import numbers
 import warnings
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -108,22 +114,39 @@ def _config(config, system) -> TrainConfig:
 
 
 class _Solver:
-    def __init__(self, system, config="default", seed: int = 0, device=None, progress: bool = True):
+    def __init__(self, system, config="default", seed: int = 0, device=None, progress: bool = True,
+                 evaluate: Callable[..., dict] | None = None):
         from .systems import ControlAffineSystem
 
         if not isinstance(system, ControlAffineSystem):
             raise TypeError(f"system must be a ControlAffineSystem (see pinnhjb.systems); got {type(system).__name__}")
+        if evaluate is not None and not callable(evaluate):
+            raise TypeError(f"evaluate must be a callable (a solution -> a dict of metrics) or None; got "
+                            f"{type(evaluate).__name__}")
         self.system = system
         self.config = _config(config, system)
         self.seed = _seed(seed)
         self.device = resolve_device(device)
         self.progress = bool(progress)
+        self.evaluator = evaluate
 
     @property
     def dtype(self) -> torch.dtype:
         return DTYPES[self.config.dtype]
 
-    def _metrics(self, solution) -> dict:
+    def evaluate(self, solution) -> dict:
+        """The metrics this solver gives a result it builds (for a chain: its last stage's), computed once.
+
+        * ``solution``: the trained result, before its metrics are attached.
+
+        Returns the ``evaluate`` hook's dict when the solver was given one, else ``solution.evaluate`` on
+        ``config.eval_points_per_dim`` points per axis (E, E_zero and, when the system knows V*, the errors).
+        """
+        if self.evaluator is not None:
+            metrics = self.evaluator(solution)
+            if not isinstance(metrics, dict):
+                raise TypeError(f"the evaluate hook must return a dict of metrics; got {type(metrics).__name__}")
+            return metrics
         return solution.evaluate(self.config.eval_points_per_dim)
 
     def _check_against_zero(self, metrics: dict, what: str):
@@ -138,9 +161,13 @@ class _Solver:
 class FiniteHorizonSolver(_Solver):
     """Finite-horizon PINN (Algorithm 1) with horizon extension (Theorem 2).
 
-    Parameters: a :class:`~pinnhjb.systems.ControlAffineSystem`; ``config`` a :class:`TrainConfig` or a
-    preset name (``"default"``, ``"paper"``, ``"quick"``); ``seed`` for initialisation and sampling
-    (stage k uses seed + k); ``device`` (None = CUDA when present, else CPU); ``progress`` bars.
+    * ``system``: the :class:`~pinnhjb.systems.ControlAffineSystem` to solve.
+    * ``config``: a :class:`TrainConfig`, a preset name (``"default"``, ``"paper"``, ``"quick"``, ...) or a dict.
+    * ``seed``: for initialisation and sampling (stage k uses seed + k).
+    * ``device``: None for CUDA when present, else CPU.
+    * ``progress``: show progress bars.
+    * ``evaluate``: the metrics of each new stage, a callable (the chain ending with it) -> dict; None for
+      E and the errors on ``config.eval_points_per_dim`` points per axis (see :meth:`evaluate`).
     """
 
     def _train_stage(self, length: float, start: float, terminal, init: FiniteHorizonValue | None,
@@ -159,16 +186,17 @@ class FiniteHorizonSolver(_Solver):
             p.requires_grad_(False)
         return Stage(model=model.eval(), start=start, history=history, seed=seed)
 
-    def _finish(self, stages, terminal_spec, interrupted=False) -> FiniteHorizonSolution:
-        sol = FiniteHorizonSolution(self.system, self.config, stages, terminal_spec, interrupted=interrupted)
-        if not stages[-1].metrics:
-            try:
-                stages[-1].metrics = self._metrics(sol)
-            except Exception as exc:
-                _keep(exc, sol)  # the stage trained: keep it even if its evaluation fails
-                raise
-            self._check_against_zero(stages[-1].metrics, f"stage {len(stages)} ({self.system.name} "
-                                                         f"T={stages[-1].start:g}->{stages[-1].end:g})")
+    def _evaluated(self, done: list[Stage], stage: Stage, terminal_spec: dict) -> FiniteHorizonSolution:
+        """The chain ``done`` + ``stage``, where ``stage`` (just trained) gets its metrics from :meth:`evaluate`."""
+        trained = FiniteHorizonSolution(self.system, self.config, [*done, stage], terminal_spec)
+        try:
+            metrics = self.evaluate(trained)
+        except Exception as exc:
+            _keep(exc, trained)  # the stage trained: keep it even if its evaluation fails
+            raise
+        sol = FiniteHorizonSolution(self.system, self.config, [*done, replace(stage, metrics=metrics)], terminal_spec)
+        self._check_against_zero(metrics, f"stage {len(sol.stages)} ({self.system.name} "
+                                          f"T={stage.start:g}->{stage.end:g})")
         return sol
 
     def solve(self, horizon: float, terminal_cost=None) -> FiniteHorizonSolution:
@@ -176,7 +204,7 @@ class FiniteHorizonSolver(_Solver):
         horizon = _number(horizon, "horizon")
         phi = make_terminal_cost(terminal_cost, self.system.n)
         stage = self._train_stage(horizon, 0.0, phi.to(self.device, self.dtype), None, 0)
-        return self._finish([stage], phi.spec())
+        return self._evaluated([], stage, phi.spec())
 
     def extend(self, solution: FiniteHorizonSolution, to: float, step: float | None = None,
                callback: Callable[[FiniteHorizonSolution], None] | None = None) -> FiniteHorizonSolution:
@@ -209,20 +237,17 @@ class FiniteHorizonSolver(_Solver):
         ends = [e for e in ends if e > T + 1e-9]
         if len(ends) > 1 and ends[-1] - ends[-2] < 1e-9:
             ends.pop(-2)
-        stages = list(solution.stages)
         current = solution
         try:
             for end in ends:
-                prev = stages[-1]
+                prev = current.stages[-1]
                 terminal = ValueTerminalCost(prev.model)  # frozen after training; shared, not copied
-                stage = self._train_stage(float(end - prev.end), prev.end, terminal, prev.model, len(stages))
-                stages.append(stage)
-                current = self._finish(stages, solution.terminal_spec)
+                stage = self._train_stage(float(end - prev.end), prev.end, terminal, prev.model, len(current.stages))
+                current = self._evaluated(current.stages, stage, solution.terminal_spec)
                 if callback is not None:
                     callback(current)
         except KeyboardInterrupt:
-            if len(stages) > len(current.stages):
-                stages = stages[:len(current.stages)]
+            stages = current.stages  # the stages trained and evaluated before the interrupt
             warnings.warn(f"interrupted: returning the {len(stages)} completed stage(s) up to T={stages[-1].end:g}")
             return FiniteHorizonSolution(self.system, self.config, stages, solution.terminal_spec, interrupted=True)
         except Exception as exc:
@@ -261,7 +286,7 @@ class FiniteHorizonSolver(_Solver):
             except Exception as exc:
                 _keep(exc, sol)
                 raise
-        sol.tol = tol
+        sol = replace(sol, tol=tol)
         if not sol.converged and not sol.interrupted:
             warnings.warn(f"solve_until stopped at max_horizon={max_horizon:g} without meeting tol={tol:g}: "
                           f"E = {sol.metrics['E']:.3e} at T={sol.horizon:g} (converged=False); raise max_horizon, "
@@ -272,7 +297,10 @@ class FiniteHorizonSolver(_Solver):
 
 class SteadyStateSolver(_Solver):
     """The direct steady-state PINN on eq. (4) with V(0) = 0 (the paper's T = infinity baseline), trained
-    with the same network, data and optimiser budget as one finite-horizon stage."""
+    with the same network, data and optimiser budget as one finite-horizon stage.
+
+    Arguments as for :class:`FiniteHorizonSolver` (``evaluate`` computes the solution's metrics).
+    """
 
     def solve(self) -> SteadyStateSolution:
         cfg = self.config
@@ -283,7 +311,7 @@ class SteadyStateSolver(_Solver):
                                      desc=f"{self.system.name} steady state")
         for p in model.parameters():
             p.requires_grad_(False)
-        sol = SteadyStateSolution(self.system, cfg, model.eval(), history, self.seed)
-        sol.metrics = self._metrics(sol)
+        trained = SteadyStateSolution(self.system, cfg, model.eval(), history, self.seed)
+        sol = replace(trained, metrics=self.evaluate(trained))
         self._check_against_zero(sol.metrics, f"{self.system.name} steady state")
         return sol

@@ -282,7 +282,8 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
     """Load a solution saved by :func:`save`. ``system`` is rebuilt from the registry when omitted (and
     checked against the checkpoint's fingerprint when given); ``config``, if given, must match the stored
     architecture. ``terminal_cost`` (a :class:`~pinnhjb.pinn.CallableTerminalCost` of the same name) is required
-    for, and only for, a checkpoint saved with a named callable terminal cost."""
+    for, and only for, a checkpoint saved with a named callable terminal cost. The solution's ``metrics`` are the
+    stored ones (not recomputed) and its ``provenance`` is the checkpoint's record."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint at {path}")
@@ -328,7 +329,7 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
         _load_state(model, _checked_state(ckpt["state"], "steady-state model", path, perturb), "steady-state model")
         model = model.eval().requires_grad_(False)
         sol = SteadyStateSolution(system, stored, model, _history(ckpt["history"], "history", path), ckpt["seed"],
-                                  _metrics(ckpt["metrics"], "metrics", path))
+                                  _metrics(ckpt["metrics"], "metrics", path), provenance=ckpt["provenance"])
     else:
         term = ckpt["terminal"]
         _require(term, ("kind",), "terminal", path)
@@ -341,6 +342,6 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
             model = model.eval().requires_grad_(False)
             stages.append(Stage(model=model, start=st["start"], history=_history(st["history"], f"stage {i + 1}", path),
                                 seed=st["seed"], metrics=_metrics(st["metrics"], f"stage {i + 1}", path)))
-        sol = FiniteHorizonSolution(system, stored, stages, term, interrupted=ckpt.get("interrupted", False))
-    sol.provenance = ckpt["provenance"]
+        sol = FiniteHorizonSolution(system, stored, stages, term, interrupted=ckpt.get("interrupted", False),
+                                    provenance=ckpt["provenance"])
     return sol

@@ -41,10 +41,21 @@ def resolve_device(device=None) -> torch.device:
     return dev
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainHistory:
-    """Loss and wall time along training; ``stop_reason`` says why training stopped (Adam's reason, or the
-    Levenberg-Marquardt phase's when there was no Adam or it ran out of time)."""
+    """The training log of one stage, built once when training ends.
+
+    * ``step``: the optimiser step of each logged point (every ``config.log_every`` steps, the first, the last).
+    * ``loss``: the training loss at those steps.
+    * ``wall``: the seconds since the stage's training started, at those steps.
+    * ``phase``: the phase of each logged point: ``"adam"``, ``"lbfgs"``, ``"lm"``, and ``"final"`` for the last.
+    * ``stop_reason``: why training stopped (Adam's reason, or the Levenberg-Marquardt phase's when there was no
+      Adam or it ran out of time).
+    * ``wall_time``: the stage's training time in seconds (evaluation not included).
+    * ``final_loss``: the loss at the end of training.
+
+    The history holds its own copies of the four lists.
+    """
 
     step: list = field(default_factory=list)
     loss: list = field(default_factory=list)
@@ -54,11 +65,9 @@ class TrainHistory:
     wall_time: float = 0.0
     final_loss: float = float("nan")
 
-    def record(self, step: int, loss: float, wall: float, phase: str):
-        self.step.append(int(step))
-        self.loss.append(float(loss))
-        self.wall.append(float(wall))
-        self.phase.append(phase)
+    def __post_init__(self):
+        for name in ("step", "loss", "wall", "phase"):
+            object.__setattr__(self, name, list(getattr(self, name)))
 
     def to_dict(self) -> dict:
         return {"step": list(self.step), "loss": list(self.loss), "wall": list(self.wall), "phase": list(self.phase),
@@ -67,6 +76,26 @@ class TrainHistory:
     @classmethod
     def from_dict(cls, d: dict) -> "TrainHistory":
         return cls(**d)
+
+
+class _Log:
+    """The :class:`TrainHistory` of a stage while it trains: points appended, then frozen by :meth:`history`."""
+
+    def __init__(self):
+        self.step, self.loss, self.wall, self.phase = [], [], [], []
+        self.stop_reason = ""
+        self.wall_time = 0.0
+        self.final_loss = float("nan")
+
+    def record(self, step: int, loss: float, wall: float, phase: str):
+        self.step.append(int(step))
+        self.loss.append(float(loss))
+        self.wall.append(float(wall))
+        self.phase.append(phase)
+
+    def history(self) -> TrainHistory:
+        return TrainHistory(self.step, self.loss, self.wall, self.phase, self.stop_reason, self.wall_time,
+                            self.final_loss)
 
 
 # ---------------------------------------------------------------------- cached data
@@ -152,7 +181,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
     of its per-point arguments.
     """
     params = list(params)
-    hist = TrainHistory()
+    hist = _Log()
     start = time.perf_counter()
     opt = torch.optim.Adam(params, lr=config.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(config))
@@ -269,7 +298,7 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
     hist.wall_time = time.perf_counter() - start
     hist.record(step + evals + iterations, hist.final_loss, hist.wall_time, "final")
     bar.close()
-    return hist
+    return hist.history()
 
 
 def _generator(seed: int) -> torch.Generator:
