@@ -134,3 +134,29 @@ def test_deepxde_cpu_runs_are_under_no_torch_function_mode(speed, monkeypatch):
     monkeypatch.setattr(speed, "_run_deepxde", lambda *a: seen.append(len(_get_current_function_mode_stack())))
     speed.run_deepxde("x", "deepxde-chain", 1.0, SimpleNamespace(device="cpu"), None, None)
     assert seen == [0]
+
+
+def test_timed_measure_is_the_solvers_public_evaluation_hook(speed):
+    """The benchmark's per-stage metrics go through the solver's public ``evaluate=`` hook (no private override):
+    the hook returns :func:`measure` of the chain's V_T(., 0) and adds up the time spent in it. No training: an
+    untrained stage."""
+    import torch
+
+    import pinnhjb as ph
+    from pinnhjb.pinn import FiniteHorizonValue, ZeroTerminalCost
+    from pinnhjb.solution import Stage
+    from pinnhjb.training import TrainHistory
+
+    system = ph.systems.quartic()
+    torch.manual_seed(0)
+    model = FiniteHorizonValue(2, 0.5, system.train_domain, ZeroTerminalCost(), width=4, depth=1).double()
+    sol = ph.FiniteHorizonSolution(system, ph.TrainConfig.preset("default"),
+                                   [Stage(model.requires_grad_(False), 0.0, TrainHistory(), 0)], {"kind": "zero"})
+    hook = speed.TimedMeasure(system)
+    out = hook(sol)
+    assert out == speed.measure(system, speed.chain_value_fn(sol)) and hook.eval_time > 0.0
+    assert {"E", "E_boundary", "value_max_error", "policy_max_error"} <= set(out)
+    assert out["E"] == sol.evaluate(101)["E"]  # the same E as the package's own evaluation on the 101 x 101 grid
+    # the package's solver is used as it is, not subclassed to override a private method
+    assert not any(isinstance(v, type) and issubclass(v, ph.FiniteHorizonSolver) for v in vars(speed).values()
+                   if v is not ph.FiniteHorizonSolver)

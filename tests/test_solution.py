@@ -1,0 +1,141 @@
+"""pinnhjb.solution and the solver's evaluation hook: results are declared dataclasses, built once with their metrics.
+
+Every run is a few Adam steps of the quick preset (the numbers do not matter here, only who computes them and when).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import pinnhjb as ph
+from pinnhjb.solution import FiniteHorizonSolution, Stage, SteadyStateSolution
+from pinnhjb.training import TrainHistory
+
+FAST = dict(adam_steps=5, lbfgs_steps=0, eval_points_per_dim=11)
+
+
+def config(**overrides) -> ph.TrainConfig:
+    return ph.TrainConfig.preset("quick", **{**FAST, **overrides})
+
+
+def field_names(cls) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return ph.systems.pendulum()
+
+
+class Recorder:
+    """An evaluation hook that records the horizon and the stage count it was called on."""
+
+    def __init__(self, metrics=None):
+        self.calls = []
+        self.metrics = metrics
+
+    def __call__(self, solution) -> dict:
+        n = len(solution.stages) if isinstance(solution, FiniteHorizonSolution) else 0
+        self.calls.append((n, float(getattr(solution, "horizon", math.inf)), dict(solution.metrics)))
+        return {"E": 1.0 / n, "E_zero": 10.0} if self.metrics is None else dict(self.metrics)
+
+
+@pytest.mark.parametrize("cls, fields", [
+    (Stage, {"model", "start", "history", "seed", "metrics"}),
+    (TrainHistory, {"step", "loss", "wall", "phase", "stop_reason", "wall_time", "final_loss"}),
+    (FiniteHorizonSolution, {"system", "config", "stages", "terminal_spec", "interrupted", "tol", "provenance"}),
+    (SteadyStateSolution, {"system", "config", "model", "history", "seed", "metrics", "provenance"}),
+])
+def test_results_declare_every_field_and_document_it(cls, fields):
+    assert dataclasses.is_dataclass(cls) and field_names(cls) == fields
+    for name in fields:
+        assert f"``{name}``" in cls.__doc__, (cls.__name__, name)
+
+
+def test_stage_and_history_are_frozen(pendulum):
+    sol = ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=Recorder()).solve(0.5)
+    stage = sol.stages[0]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        stage.metrics = {}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        stage.history.final_loss = 0.0
+    again = dataclasses.replace(stage, metrics={"E": 1.0})  # a changed stage is a new one
+    assert again.metrics == {"E": 1.0} and stage.metrics != again.metrics and again.model is stage.model
+
+
+def test_results_own_their_metrics_and_history():
+    metrics, loss = {"E": 1.0}, [3.0, 2.0]
+    history = TrainHistory(step=[1, 2], loss=loss)
+    stage = Stage(torch.nn.Identity(), 0.0, history, 0, metrics)
+    metrics["E"], loss[0] = 99.0, 99.0
+    assert stage.metrics == {"E": 1.0} and history.loss == [3.0, 2.0]
+
+
+def test_solver_metrics_come_from_the_hook_once_per_stage(pendulum):
+    hook = Recorder()
+    solver = ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=hook)
+    seen = []
+    sol = solver.solve(0.5)
+    sol = solver.extend(sol, to=1.5, step=0.5, callback=lambda s: seen.append(dict(s.metrics)))
+    # called once per stage, on the chain ending with the new stage, before that stage had metrics
+    assert [(n, h) for n, h, _ in hook.calls] == [(1, 0.5), (2, 1.0), (3, 1.5)]
+    assert all(before == {} for _, _, before in hook.calls)
+    assert [s.metrics for s in sol.stages] == [{"E": 1.0, "E_zero": 10.0}, {"E": 0.5, "E_zero": 10.0},
+                                               {"E": 1 / 3, "E_zero": 10.0}]
+    assert seen == [{"E": 0.5, "E_zero": 10.0}, {"E": 1 / 3, "E_zero": 10.0}]  # the callback sees them attached
+    assert sol.metrics == sol.stages[-1].metrics and sol.provenance is None and sol.tol is None
+
+
+def test_default_hook_is_the_solution_grid_evaluation(pendulum):
+    solver = ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False)
+    with pytest.warns(RuntimeWarning, match="no better than E of V = 0"):
+        sol = solver.solve(0.5)
+    assert sol.metrics == sol.evaluate(11) == solver.evaluate(sol)
+
+
+def test_hook_can_skip_evaluation_and_solve_until_uses_its_E(pendulum):
+    skip = ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=lambda sol: {})
+    assert skip.solve(0.5).metrics == {}
+    hook = Recorder()  # E = 1 / k after k stages: tol 0.4 is met at the third stage
+    until = ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=hook)
+    sol = until.solve_until(tol=0.4, step=0.5, max_horizon=5.0)
+    assert len(sol.stages) == 3 and sol.converged is True and sol.tol == 0.4
+    assert [row["converged"] for row in sol.summary()] == [False, False, True]
+
+
+def test_steady_state_metrics_come_from_the_hook(pendulum):
+    hook = Recorder(metrics={"E": 0.5, "E_zero": 1.0})
+    sol = ph.SteadyStateSolver(pendulum, config(), device="cpu", progress=False, evaluate=hook).solve()
+    assert len(hook.calls) == 1 and hook.calls[0][2] == {}
+    assert sol.metrics == {"E": 0.5, "E_zero": 1.0} and sol.converged is None and sol.provenance is None
+
+
+@pytest.mark.parametrize("bad, match", [(3, "evaluate must be a callable"), (lambda sol: [1.0], "must return a dict")])
+def test_a_bad_hook_is_refused(pendulum, bad, match):
+    with pytest.raises(TypeError, match=match):
+        ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=bad).solve(0.5)
+
+
+def test_a_failing_hook_keeps_the_trained_stage(pendulum):
+    def fail(sol):
+        raise FloatingPointError("evaluation failed")
+
+    with pytest.raises(FloatingPointError) as info:
+        ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=fail).solve(0.5)
+    partial = info.value.partial_solution
+    assert len(partial.stages) == 1 and partial.metrics == {}
+
+
+def test_loaded_solution_carries_its_provenance_and_stored_metrics(pendulum, tmp_path):
+    solver = ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=Recorder())
+    sol = solver.solve(0.5)
+    loaded = ph.load(ph.save(sol, tmp_path / "s.pt", note="hook"), system=pendulum)
+    assert loaded.metrics == {"E": 1.0, "E_zero": 10.0}  # the stored metrics, not recomputed
+    assert loaded.provenance["note"] == "hook" and loaded.tol is None and loaded.converged is None
+    derived = dataclasses.replace(loaded, tol=2.0)
+    assert derived.converged is True and loaded.tol is None and derived.stages == loaded.stages
+    np.testing.assert_array_equal(derived.value(np.zeros((1, 2))), loaded.value(np.zeros((1, 2))))
