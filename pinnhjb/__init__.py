@@ -4,7 +4,8 @@ HJB (Fotiadis & Vamvoudakis). See the README and the book for the map from the p
 systems (f, g, Q, R, Omega as data) · lq (Riccati ground truth) · pinn (networks) · residuals (the PDE forms
 F_e, F_b, F_in, E_e, registered by name) · config / training (Algorithm 1) · gauss_newton (Levenberg-Marquardt,
 our optimiser) · jacobian (its fast Jacobian) · solver (solve, extend = Theorem 2, solve_until, steady-state
-baseline) · metrics (E, errors, closed loop) · storage (checkpoints with provenance).
+baseline) · metrics (E, errors, closed loop) · storage (checkpoints with provenance). What belongs to the paper
+(its cases, the reproduction, the Theorem 3 demonstration, the chapters' loaders) is in the subpackage paper.
 """
 import importlib as _importlib
 
@@ -23,9 +24,9 @@ __all__ = ["systems", "lq", "metrics", "residuals", "reference", "TrainConfig", 
            "get_system", "save", "load", "CheckpointError", "DivergenceError", "__version__"]
 
 # Submodules imported on first use (``ph.reference`` works after ``import pinnhjb``), so that importing the
-# package stays cheap: the reference solver, the reproduction, the plots and widgets.
-_LAZY = ("reference", "reproduce", "theorem3", "plots", "widgets", "gauss_newton", "jacobian", "pinn", "training",
-         "solver", "solution", "storage", "config", "cli")
+# package stays cheap: the reference solver, the paper's reproduction, the plots and widgets.
+_LAZY = ("reference", "paper", "plots", "widgets", "gauss_newton", "jacobian", "pinn", "training", "solver",
+         "solution", "storage", "config", "cli")
 
 
 def __getattr__(name):

@@ -180,13 +180,13 @@ def _evaluate(args) -> int:
 
 
 def _reproduce(args) -> int:
-    from .reproduce import run
+    from .paper.reproduce import run
 
     if args.seeds < 1:
         raise UsageError(f"--seeds must be at least 1 (seeds 0 .. N-1 are run); got {args.seeds}")
 
     if args.tables_only:
-        from .reproduce import rewrite_tables
+        from .paper.tables import rewrite_tables
 
         rewrite_tables(args.out)
         print(f"tables rewritten: {args.out}/results/reproduce.md")

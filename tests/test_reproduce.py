@@ -1,4 +1,4 @@
-"""The reproduction command (quick mode) and the committed artifacts it wrote.
+"""The reproduction command (quick mode, pinnhjb.paper) and the committed artifacts it wrote.
 
 Every committed checkpoint is re-evaluated: its stored E must still come out of the current code, so a stale
 artifact (trained by older code, or edited by hand) fails here.
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import pinnhjb as ph
-from pinnhjb import reproduce
+from pinnhjb import paper
+from pinnhjb.paper import artifacts, reproduce, tables
 
 ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = ROOT / "artifacts"
@@ -28,8 +29,8 @@ def quick_run(tmp_path_factory):
 
 def test_quick_run_writes_checkpoints_references_and_tables(quick_run):
     out, result = quick_run
-    assert reproduce.checkpoint_path(out, "pendulum_extension", 0).exists()
-    assert reproduce.checkpoint_path(out, "quartic_steady", 0).exists()
+    assert paper.checkpoint_path(out, "pendulum_extension", 0).exists()
+    assert paper.checkpoint_path(out, "quartic_steady", 0).exists()
     refs = sorted(p.name for p in (out / "reference").glob("*.npz"))
     assert "pendulum_inf.npz" in refs and "pendulum_T1.npz" in refs and "pendulum_T2.npz" in refs
     table = (out / "results" / "reproduce.md").read_text()
@@ -61,11 +62,11 @@ def test_references_are_reused(quick_run):
 
 def test_unknown_case_is_rejected():
     with pytest.raises(KeyError, match="unknown case"):
-        reproduce.cases(only=["nope"])
+        paper.cases(only=["nope"])
 
 
 def test_every_case_has_a_committed_checkpoint():
-    missing = [c.name for c in reproduce.CASES if not reproduce.checkpoint_path(ARTIFACTS, c.name, 0).exists()]
+    missing = [c.name for c in paper.CASES if not paper.checkpoint_path(ARTIFACTS, c.name, 0).exists()]
     assert not missing, f"no committed checkpoint for {missing}: run `python -m pinnhjb reproduce`"
 
 
@@ -89,7 +90,7 @@ def test_tables_can_be_rewritten_from_records(quick_run):
     out, _ = quick_run
     table = out / "results" / "reproduce.md"
     table.unlink()
-    result = reproduce.rewrite_tables(out)
+    result = tables.rewrite_tables(out)
     text = table.read_text()
     assert "The reference method, checked where V* is known (quartic_inf.npz" in text
     assert result["meta"]["reference_wall_time"] > 0 and result["meta"]["cases_wall_time"] > 0
@@ -107,12 +108,31 @@ def test_load_case_retrains_in_place_once_when_asked(quick_run, monkeypatch):
     out, _ = quick_run
     calls = []
     monkeypatch.setattr(reproduce, "run", lambda **kw: calls.append(kw))
-    monkeypatch.setattr(reproduce, "_RETRAINED", set())
-    reproduce.load_case("quartic_steady", out=out)
+    monkeypatch.setattr(artifacts, "_RETRAINED", set())
+    paper.load_case("quartic_steady", out=out)
     assert calls == []
     for _ in range(2):
-        sol = reproduce.load_case("quartic_steady", seed=0, out=out, retrain=True)
+        sol = paper.load_case("quartic_steady", seed=0, out=out, retrain=True)
     assert calls == [dict(out=out, seeds=1, only=["quartic_steady"], first_seed=0)]
     assert isinstance(sol, ph.SteadyStateSolution)
     with pytest.raises(KeyError, match="unknown case"):
-        reproduce.load_case("nope", out=out)
+        paper.load_case("nope", out=out)
+
+
+def test_the_core_knows_nothing_of_the_paper():
+    """Only the command line and the package's lazy imports reach pinnhjb.paper; no core module imports it."""
+    import ast
+
+    core = [p for p in (ROOT / "pinnhjb").glob("*.py") if p.name not in ("cli.py", "__init__.py", "__main__.py")]
+    assert core
+    for path in core:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""] + [a.name for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            assert not any(n.split(".")[-1] in ("paper", "reproduce", "theorem3") or n.startswith("paper")
+                           for n in names), (path.name, names)
+    assert not (ROOT / "pinnhjb" / "reproduce.py").exists() and not (ROOT / "pinnhjb" / "theorem3.py").exists()

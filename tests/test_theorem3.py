@@ -1,4 +1,4 @@
-"""The Theorem 3 experiment (pinnhjb.theorem3): the stored stages reload and their stored metrics still hold."""
+"""The Theorem 3 experiment (pinnhjb.paper.theorem3): the stored stages reload and their stored metrics still hold."""
 from pathlib import Path
 
 import numpy as np
@@ -8,7 +8,7 @@ from scipy.integrate import solve_ivp
 import torch
 
 import pinnhjb as ph
-from pinnhjb import theorem3
+from pinnhjb.paper import theorem3
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "artifacts" / "theorem3"

@@ -312,7 +312,7 @@ CASES = [
      r"--points-per-dim: expected an integer >= 2"),
     ("cli-reproduce-seeds-0", cli_fails(["reproduce", "--seeds", "0", "--out", "{tmp}/r"]), CliError,
      r"--seeds must be at least 1"),
-    ("reproduce-run-seeds-0", lambda c: ph.reproduce.run(out=c.tmp / "r", seeds=0), ValueError,
+    ("reproduce-run-seeds-0", lambda c: ph.paper.reproduce.run(out=c.tmp / "r", seeds=0), ValueError,
      r"0 <= first_seed < seeds .*got first_seed=0, seeds=0"),
 ]
 

@@ -1,4 +1,27 @@
-"""What belongs to the paper, not to the method: its simulations and settings (:mod:`.cases`)."""
-from .cases import CASES, Case, cases
+"""What belongs to the paper, not to the method; the core modules know nothing of it.
 
-__all__ = ["CASES", "Case", "cases"]
+* :mod:`.cases`: the paper's simulations (Section 6) with its reported numbers, and the evaluation settings;
+* :mod:`.artifacts`: where the stored checkpoints, reference grids and results live, and the loaders the
+  chapters call (re-exported here: ``paper.load_case``, ``paper.stored_seeds``, ...);
+* :mod:`.reproduce`: the pipeline behind ``python -m pinnhjb reproduce``; :mod:`.evaluation` measures one
+  trained case against its reference, :mod:`.tables` writes the results tables;
+* :mod:`.theorem3`: Theorem 3 demonstrated on a trained stage (chapter 5), ``python -m pinnhjb.paper.theorem3``.
+"""
+import importlib as _importlib
+
+from .artifacts import (artifacts_dir, checkpoint_path, load_case, load_reference, load_results,
+                        reference_path, reference_residual, stage_metric, stored_seeds)
+from .cases import CASES, INF, Case, cases
+
+__all__ = ["CASES", "INF", "Case", "cases", "artifacts_dir", "checkpoint_path", "reference_path", "load_case",
+           "stored_seeds", "stage_metric", "reference_residual", "load_reference", "load_results"]
+
+# Submodules imported on first use (``paper.reproduce`` after ``from pinnhjb import paper``); theorem3 is not
+# imported here so that ``python -m pinnhjb.paper.theorem3`` runs it only once.
+_LAZY = ("reproduce", "evaluation", "tables", "theorem3")
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return _importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'pinnhjb.paper' has no attribute {name!r}")

@@ -11,7 +11,7 @@ where ``x_T'`` follows mu* and ``x_hat_T'`` the stage's own (time-varying) learn
 mu_hat(x, t) = -1/2 R^{-1} g' grad_x v_hat(x, t). A trained stage also has its own network error; the stage
 trained with ``e = 0`` (terminal cost V* itself) measures it.
 
-``python -m pinnhjb.theorem3 [--out artifacts/theorem3]`` trains the three stages of :data:`ERRORS` (seeded,
+``python -m pinnhjb.paper.theorem3 [--out artifacts/theorem3]`` trains the three stages of :data:`ERRORS` (seeded,
 fixed step counts, about 20 s each on two CPU cores) and stores them with :func:`pinnhjb.storage.save`.
 The terminal cost V* + e is code, so the checkpoint stores it by name and :func:`load` passes the same
 function back (``pinnhjb.load`` refuses such a checkpoint without it).
@@ -25,14 +25,15 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .config import TrainConfig
-from .metrics import closed_loop
-from .pinn import CallableTerminalCost
-from .solution import FiniteHorizonSolution
-from .solver import FiniteHorizonSolver
-from .storage import load as _load
-from .storage import save as _save
-from .systems import quartic
+from ..config import TrainConfig
+from ..metrics import closed_loop
+from ..pinn import CallableTerminalCost
+from ..solution import FiniteHorizonSolution
+from ..solver import FiniteHorizonSolver
+from ..storage import load as _load
+from ..storage import save as _save
+from ..systems import quartic
+from .artifacts import artifacts_dir
 
 __all__ = ["ERRORS", "FORMULAS", "DELTA", "SEED", "config", "terminal_cost", "train", "save", "load", "path",
            "rollout", "bound_check", "summary", "exact_stage", "load_exact"]
@@ -75,8 +76,6 @@ def train(error: str, seed: int = SEED, delta: float = DELTA, progress: bool = F
 
 def path(error: str, out: Path | None = None) -> Path:
     if out is None:
-        from .reproduce import artifacts_dir
-
         out = artifacts_dir() / "theorem3"
     return Path(out) / f"quartic_{error}.pt"
 
@@ -134,7 +133,7 @@ def exact_stage(error: str, points_per_dim: int = 21, delta: float = DELTA, tol:
     (x_T'(delta) under mu*) and ``converged``."""
     import warnings
 
-    from .reference import solve_point
+    from ..reference import solve_point
 
     system = quartic()
     phi = terminal_cost(error)

@@ -1,0 +1,96 @@
+"""Where the reproduction's artifacts live, and the loaders the chapters call: stored solutions per case and
+seed, the reference grids, the results table."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from ..storage import load
+from .cases import CASES, INF, Case
+from .evaluation import reference_grid_residual
+
+__all__ = ["DEFAULT_OUT", "artifacts_dir", "checkpoint_path", "reference_path", "load_case", "stored_seeds",
+           "stage_metric", "reference_residual", "load_reference", "load_results"]
+
+DEFAULT_OUT = Path("artifacts")
+
+
+def checkpoint_path(out: Path, case: str, seed: int) -> Path:
+    return Path(out) / "checkpoints" / case / f"seed{seed}.pt"
+
+
+def _system_key(case: Case) -> str:
+    return case.system + "".join(f"_{k}{v:g}" if isinstance(v, float) else f"_{k}{v}" for k, v in case.params.items())
+
+
+def reference_path(out: Path, case: Case, horizon: float) -> Path:
+    tag = "inf" if horizon == INF else f"T{horizon:g}"
+    return Path(out) / "reference" / f"{_system_key(case)}_{tag}.npz"
+
+
+def artifacts_dir() -> Path:
+    """Where the committed artifacts are: ``$PINNHJB_ARTIFACTS``, else the nearest ``artifacts/`` folder
+    with checkpoints in the working directory or above it (notebooks run from ``notebooks/``)."""
+    env = os.environ.get("PINNHJB_ARTIFACTS")
+    if env:
+        return Path(env)
+    for base in [Path.cwd(), *Path.cwd().parents]:
+        if (base / DEFAULT_OUT / "checkpoints").is_dir():
+            return base / DEFAULT_OUT
+    return DEFAULT_OUT
+
+
+_RETRAINED: set = set()
+
+
+def load_case(case: str, seed: int = 0, out: Path | None = None, device=None, retrain: bool = False):
+    """The stored solution of a case (as the notebooks load it).
+
+    ``retrain=True`` (a notebook's ``RETRAIN`` switch) first trains this case and seed again with the
+    default recipe, in place (checkpoint and results table, as ``reproduce --cases``), once per process.
+    """
+    if case not in {c.name for c in CASES}:
+        raise KeyError(f"unknown case {case!r}; known: {[c.name for c in CASES]}")
+    out = Path(out or artifacts_dir())
+    if retrain and (case, seed, out) not in _RETRAINED:
+        from . import reproduce  # the pipeline imports this module
+
+        reproduce.run(out=out, seeds=seed + 1, only=[case], first_seed=seed)
+        _RETRAINED.add((case, seed, out))
+    return load(checkpoint_path(out, case, seed), device=device)
+
+
+def stored_seeds(case: str, out: Path | None = None) -> list[int]:
+    """The seeds with a stored checkpoint for ``case``."""
+    folder = Path(out or artifacts_dir()) / "checkpoints" / case
+    return sorted(int(p.stem[4:]) for p in folder.glob("seed*.pt"))
+
+
+def stage_metric(case: str, key: str, out: Path | None = None) -> dict[float, list[float]]:
+    """Metric ``key`` of every stored seed of a chain case, per horizon: ``{T: [value per seed]}``."""
+    spec = next(c for c in CASES if c.name == case)
+    values: dict[float, list[float]] = {T: [] for T in spec.horizons}
+    for seed in stored_seeds(case, out):
+        for T, row in zip(spec.horizons, load_case(case, seed, out).summary()):
+            values[T].append(row[key])
+    return values
+
+
+def reference_residual(case: str | Case, horizon: float, out: Path | None = None) -> float:
+    """E of the stored exact (reference) V_T(., 0): the part of a PINN's E that is due to the horizon alone."""
+    case = case if isinstance(case, Case) else next(c for c in CASES if c.name == case)
+    return reference_grid_residual(case.build_system(), load_reference(case, horizon, out))
+
+
+def load_reference(case: str | Case, horizon: float = INF, out: Path | None = None):
+    from ..reference import ReferenceGrid
+
+    case = case if isinstance(case, Case) else next(c for c in CASES if c.name == case)
+    return ReferenceGrid.load(reference_path(out or artifacts_dir(), case, horizon))
+
+
+def load_results(out: Path | None = None) -> dict:
+    """The results table written by :func:`pinnhjb.paper.reproduce.run` (``summary`` rows, ``records`` per seed,
+    ``meta``)."""
+    return json.loads((Path(out or artifacts_dir()) / "results" / "reproduce.json").read_text())
