@@ -1,4 +1,4 @@
-"""Figures, one style for every chapter: the paper's surfaces (Figures 1-7) and the book's own plots.
+"""Figures in one style: the paper's surfaces (Figures 1-7), loss curves, time-to-accuracy lines and bars.
 
 Every function takes plain data or a solution object and returns a matplotlib ``Figure``; nothing is shown
 or saved here. Figures are drawn for the book's content column: at most :data:`WIDTH` inches wide at 100 dpi

@@ -1,7 +1,7 @@
 """Numbers and tables as the book prints them: the same text on any computer.
 
-A number printed by a chapter is compared, character for character, by the notebook tests on whatever machine
-runs them. It must therefore say what the text claims and no more:
+A number a notebook prints may be compared, character for character, by notebook tests (nbval) on whatever
+machine runs them. It must therefore say what the text around it claims and no more:
 
 * :func:`num` prints a value that is zero up to rounding (``|x| < zero``) as zero, without a sign, and
   everything else to the digits asked for; values below a stated floor can be printed as ``< floor``.
