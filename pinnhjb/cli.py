@@ -12,6 +12,7 @@ every stage (atomic), so an interrupted or failing run keeps its finished stages
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import json
 import math
@@ -151,7 +152,7 @@ def _train(args) -> int:
         try:
             checkpoint(sol)
         except KeyboardInterrupt:  # inside the first save: the stage trained, keep it
-            sol.interrupted = True
+            sol = dataclasses.replace(sol, interrupted=True)
         if args.extend_to is not None and not sol.interrupted:
             sol = solver.extend(sol, to=args.extend_to, step=args.step, callback=checkpoint)
     except Exception as exc:

@@ -135,7 +135,7 @@ class Stage:
         return self.start + self.length
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, frozen=True)
 class FiniteHorizonSolution(_ValueSolution):
     """V_T(x, t) and mu_T(x, t) from a chain of stages (Algorithm 1 + Theorem 2).
 
@@ -161,7 +161,7 @@ class FiniteHorizonSolution(_ValueSolution):
     def __post_init__(self):
         if not self.stages:
             raise ValueError("a FiniteHorizonSolution needs at least one stage")
-        self.stages = list(self.stages)
+        object.__setattr__(self, "stages", list(self.stages))
 
     def _models(self):
         return [s.model for s in self.stages]
@@ -224,7 +224,7 @@ class FiniteHorizonSolution(_ValueSolution):
                 f"E={e if e is None else f'{e:.3e}'}, wall_time={self.wall_time:.1f}s)")
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, frozen=True)
 class SteadyStateSolution(_ValueSolution):
     """The direct steady-state PINN V(x) (the paper's T = infinity column of Table 1).
 
@@ -248,7 +248,7 @@ class SteadyStateSolution(_ValueSolution):
     provenance: dict | None = None
 
     def __post_init__(self):
-        self.metrics = dict(self.metrics or {})
+        object.__setattr__(self, "metrics", dict(self.metrics or {}))
 
     @property
     def converged(self) -> None:

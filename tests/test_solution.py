@@ -56,8 +56,12 @@ def test_results_declare_every_field_and_document_it(cls, fields):
         assert f"``{name}``" in cls.__doc__, (cls.__name__, name)
 
 
-def test_stage_and_history_are_frozen(pendulum):
+def test_stage_history_and_solution_are_frozen(pendulum):
     sol = ph.FiniteHorizonSolver(pendulum, config(), device="cpu", progress=False, evaluate=Recorder()).solve(0.5)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        sol.interrupted = True
+    marked = dataclasses.replace(sol, interrupted=True)  # a changed solution is a new one
+    assert marked.interrupted and not sol.interrupted and marked.stages == sol.stages
     stage = sol.stages[0]
     with pytest.raises(dataclasses.FrozenInstanceError):
         stage.metrics = {}

@@ -69,9 +69,7 @@ def train(error: str, seed: int = SEED, delta: float = DELTA, progress: bool = F
     if error not in ERRORS:
         raise KeyError(f"unknown error {error!r}; choose one of {sorted(ERRORS)}")
     solver = FiniteHorizonSolver(quartic(), config=config(), seed=seed, device="cpu", progress=progress)
-    sol = solver.solve(horizon=delta, terminal_cost=terminal_cost(error))
-    sol.error = error
-    return sol
+    return solver.solve(horizon=delta, terminal_cost=terminal_cost(error))
 
 
 def path(error: str, out: Path | None = None) -> Path:
@@ -88,9 +86,7 @@ def save(sol: FiniteHorizonSolution, error: str, out: Path | None = None, **extr
 
 def load(error: str, out: Path | None = None) -> FiniteHorizonSolution:
     """A stored stage with its terminal cost V* + e re-attached."""
-    sol = _load(path(error, out), device="cpu", terminal_cost=terminal_cost(error))
-    sol.error = error
-    return sol
+    return _load(path(error, out), device="cpu", terminal_cost=terminal_cost(error))
 
 
 def rollout(system, policy: Callable[[Tensor, float], Tensor], x0, t_final: float, dt: float = 0.01) -> np.ndarray:
