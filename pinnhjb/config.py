@@ -55,7 +55,7 @@ class TrainConfig:
 
     Our default is a small network (3 x 24 tanh, float64, about 1300 weights) trained by Levenberg-Marquardt
     alone on 700 then 1500 points per iteration (its cost per iteration grows with the square of the number of
-    weights: keep the network small); the ``adam_lbfgs`` preset is the first-order recipe we used before
+    weights: keep the network small); the ``adam_lbfgs`` preset is a first-order recipe
     (3 x 100, float32, Adam then L-BFGS).
     """
 
@@ -195,7 +195,7 @@ PRESETS: dict[str, dict] = {
     # Ours: hard constraints, a 3 x 24 network in float64, Levenberg-Marquardt on fresh points, warm-started
     # extension.
     "default": dict(),
-    # Ours before: hard constraints, 3 x 100 in float32, fresh points every step, cosine Adam, L-BFGS polish.
+    # First-order: hard constraints, 3 x 100 in float32, fresh points every step, cosine Adam, L-BFGS polish.
     "adam_lbfgs": dict(_FIRST_ORDER, adam_steps=2500, lbfgs_steps=800),
     # Section 6: soft loss MSE_e + MSE_b + MSE_in, fixed data, Adam with inverse-time decay per
     # mini-batch of 500, stop when every mini-batch loss is below the threshold; capped by steps/time.
