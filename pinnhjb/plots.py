@@ -14,7 +14,7 @@ import matplotlib as mpl
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["WIDTH", "use_book_style", "panels", "grid_2d", "slice_mesh", "surfaces", "value_policy_residual",
+__all__ = ["WIDTH", "use_book_style", "panels", "grid_2d", "slice_mesh", "surface", "surfaces", "value_policy_residual",
            "value_and_error", "policy_and_error", "loss_curve", "time_to_accuracy", "grouped_bars"]
 
 CMAP = "viridis"
@@ -75,6 +75,35 @@ def slice_mesh(system, axes: tuple[int, int] = (0, 1), fixed=None, points_per_di
     return x1, x2, pts
 
 
+def surface(ax, x1, x2, z, title: str = "", diverging: bool = False, limit=None,
+            axis_labels: tuple[str, str] = ("$x_1$", "$x_2$"), zlabel: str | None = None):
+    """One 3-D surface of ``z`` on the mesh (x1, x2) in the 3-D axes ``ax``, in the book's style.
+
+    * ``diverging``: True for an error (white at zero, a symmetric colour scale).
+    * ``limit``: None or (lo, hi) for the vertical axis and the colour scale (fixed across compared frames).
+    * ``axis_labels``, ``zlabel``: the axes' labels; ``title``: the panel's title.
+    """
+    z = np.asarray(z, dtype=float).reshape(x1.shape)
+    if diverging:  # errors: white at zero, symmetric colour scale
+        m = max(abs(limit[0]), abs(limit[1])) if limit else (float(np.abs(z).max()) or 1.0)
+        style = {"cmap": DIVERGING, "vmin": -m, "vmax": m}
+    else:
+        style = {"cmap": CMAP, **({"vmin": limit[0], "vmax": limit[1]} if limit else {})}
+    ax.plot_surface(x1, x2, z, linewidth=0, antialiased=True, **style)
+    if limit:
+        ax.set_zlim(*limit)
+    ax.set_xlabel(axis_labels[0], labelpad=-2)
+    ax.set_ylabel(axis_labels[1], labelpad=-2)
+    ax.tick_params(pad=0)
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(mpl.ticker.MaxNLocator(4, steps=[1, 2, 2.5, 5, 10]))
+    if zlabel:
+        ax.set_zlabel(zlabel)
+    ax.set_title(title)
+    ax.view_init(elev=28, azim=-130)
+    return ax
+
+
 def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str = "", zlabels=None,
              diverging: list[bool] | None = None, axis_labels: tuple[str, str] = ("$x_1$", "$x_2$"),
              limits: list | None = None, ncols: int = 2):
@@ -96,25 +125,9 @@ def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str 
         row, col = divmod(i, ncols)
         shift = ncols - min(ncols, k - row * ncols)  # a short last row is centred (half-panel steps)
         ax = fig.add_subplot(grid[row, shift + 2 * col:shift + 2 * col + 2], projection="3d")
-        z = np.asarray(z, dtype=float).reshape(x1.shape)
-        lim = limits[i] if limits else None
-        if diverging and diverging[i]:  # errors: white at zero, symmetric colour scale
-            m = max(abs(lim[0]), abs(lim[1])) if lim else (float(np.abs(z).max()) or 1.0)
-            style = {"cmap": DIVERGING, "vmin": -m, "vmax": m}
-        else:
-            style = {"cmap": CMAP, **({"vmin": lim[0], "vmax": lim[1]} if lim else {})}
-        ax.plot_surface(x1, x2, z, linewidth=0, antialiased=True, **style)
-        if lim:
-            ax.set_zlim(*lim)
-        ax.set_xlabel(axis_labels[0], labelpad=-2)
-        ax.set_ylabel(axis_labels[1], labelpad=-2)
-        ax.tick_params(pad=0)
-        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
-            axis.set_major_locator(mpl.ticker.MaxNLocator(4, steps=[1, 2, 2.5, 5, 10]))
-        if zlabels:
-            ax.set_zlabel(zlabels[i])
-        ax.set_title(title)
-        ax.view_init(elev=28, azim=-130)
+        surface(ax, x1, x2, z, title, diverging=bool(diverging and diverging[i]),
+                limit=limits[i] if limits else None, axis_labels=axis_labels,
+                zlabel=zlabels[i] if zlabels else None)
     if suptitle:
         fig.suptitle(suptitle)
     fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.9 if suptitle else 0.95, wspace=0.12,
