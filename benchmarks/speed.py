@@ -43,6 +43,7 @@ apart.
 
 Writes ``speed.md`` and ``speed.json`` to ``benchmarks/results/`` (or ``--out``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -61,8 +62,8 @@ import torch
 
 import pinnhjb as ph
 from pinnhjb.metrics import infinite_horizon_residual, optimality_errors
-from pinnhjb.storage import provenance
 from pinnhjb.paper import CASES as PAPER_CASES  # the paper's cases, with its quoted numbers
+from pinnhjb.storage import provenance
 
 RESULTS = Path(__file__).resolve().parent / "results"
 METHODS = ("paper", "default", "adam_lbfgs", "deepxde", "deepxde-chain", "deepxde-chain-small")
@@ -116,6 +117,7 @@ def describe(method: str, step: float | None) -> str:
 
 
 # ---------------------------------------------------------------------- shared pieces
+
 
 def measure(system, value_fn) -> dict:
     """E (eq. (IHJB_res), 101 x 101 grid over Omega) and the true errors against V*, mu*: the ONE function used
@@ -173,14 +175,22 @@ class Run:
         self.info: dict = {}
 
     def checkpoint(self, train_time: float, setup_time: float, metrics: dict, **where):
-        row = {"train_time": float(train_time), "train_plus_setup": float(train_time + setup_time),
-               "E": float(metrics["E"]), "E_boundary": float(metrics["E_boundary"]),
-               "value_max_error": float(metrics["value_max_error"]),
-               "policy_max_error": float(metrics["policy_max_error"]), **where}
+        row = {
+            "train_time": float(train_time),
+            "train_plus_setup": float(train_time + setup_time),
+            "E": float(metrics["E"]),
+            "E_boundary": float(metrics["E_boundary"]),
+            "value_max_error": float(metrics["value_max_error"]),
+            "policy_max_error": float(metrics["policy_max_error"]),
+            **where,
+        }
         self.trace.append(row)
         where_s = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in where.items())
-        print(f"  [{self.name}] {where_s}: E={row['E']:.3e}  max|V-V*|={row['value_max_error']:.3e}  "
-              f"train {train_time:.1f} s (+ setup {setup_time:.1f} s)", flush=True)
+        print(
+            f"  [{self.name}] {where_s}: E={row['E']:.3e}  max|V-V*|={row['value_max_error']:.3e}  "
+            f"train {train_time:.1f} s (+ setup {setup_time:.1f} s)",
+            flush=True,
+        )
 
     def time_to(self, target: float, key: str = "train_time") -> float | None:
         for row in self.trace:
@@ -193,6 +203,7 @@ class Run:
 
 
 # ---------------------------------------------------------------------- pinnhjb (paper, default)
+
 
 class TimedMeasure:
     """The solver's evaluation hook (``FiniteHorizonSolver(..., evaluate=TimedMeasure(system))``): each stage's
@@ -231,25 +242,38 @@ def pinnhjb_config(method: str, args) -> ph.TrainConfig:
         cfg = ph.TrainConfig.preset("paper", system="quartic", max_time=args.paper_stage_seconds * s)
     else:
         cfg = ph.TrainConfig.preset(method)
-    return cfg.replace(adam_steps=scaled(cfg.adam_steps, s), lbfgs_steps=scaled(cfg.lbfgs_steps, s),
-                       lm_steps=scaled(cfg.lm_steps, s))
+    return cfg.replace(
+        adam_steps=scaled(cfg.adam_steps, s), lbfgs_steps=scaled(cfg.lbfgs_steps, s), lm_steps=scaled(cfg.lm_steps, s)
+    )
 
 
 def run_pinnhjb(name: str, method: str, step: float, args, system) -> Run:
     cfg = pinnhjb_config(method, args)
     run = Run(name)
-    run.info = {"method": method, "step": step, "config": cfg.to_dict(), "stages": len(chain_lengths(step)),
-                "horizon": HORIZON}
+    run.info = {
+        "method": method,
+        "step": step,
+        "config": cfg.to_dict(),
+        "stages": len(chain_lengths(step)),
+        "horizon": HORIZON,
+    }
     timed = TimedMeasure(system)
-    solver = ph.FiniteHorizonSolver(system, config=cfg, seed=args.seed, device=args.device, progress=False,
-                                    evaluate=timed)
+    solver = ph.FiniteHorizonSolver(
+        system, config=cfg, seed=args.seed, device=args.device, progress=False, evaluate=timed
+    )
     start = time.perf_counter()
 
     def on_stage(sol):
         train = sol.wall_time  # sum of the stages' training wall times
         setup = time.perf_counter() - start - train - timed.eval_time
-        run.checkpoint(train, setup, sol.metrics, T=float(sol.horizon), stage=len(sol.stages),
-                       stop=sol.stages[-1].history.stop_reason)
+        run.checkpoint(
+            train,
+            setup,
+            sol.metrics,
+            T=float(sol.horizon),
+            stage=len(sol.stages),
+            stop=sol.stages[-1].history.stop_reason,
+        )
 
     sol = solver.solve(step)
     on_stage(sol)
@@ -262,6 +286,7 @@ def run_pinnhjb(name: str, method: str, step: float, args, system) -> Run:
 
 
 # ---------------------------------------------------------------------- DeepXDE
+
 
 def import_deepxde():
     """(deepxde, None) with the PyTorch backend, or (None, why not): not installed, or another backend."""
@@ -349,12 +374,26 @@ def _run_deepxde(name: str, method: str, step: float | None, args, system, dde) 
     every = scaled(args.checkpoint_every, s) if one_stage else 0
     lbfgs_every = scaled(args.lbfgs_checkpoint_every, s) if one_stage else lbfgs_steps
     run = Run(name)
-    run.info = {"method": method, "step": step, "deepxde": dde.__version__, "stages": len(lengths),
-                "horizon": HORIZON, "adam_steps": adam_steps,
-                "lbfgs_steps": lbfgs_steps, "lr": cfg.lr, "lr_final": cfg.lr * cfg.lr_final_ratio,
-                "flow_points_per_adam_step": cfg.batch_size, "lbfgs_points": cfg.lbfgs_points,
-                "warm_start": not one_stage, "checkpoint_every": every, "lbfgs_checkpoint_every": lbfgs_every,
-                "float": "float32", "initializer": "Glorot normal", "width": cfg.width, "depth": cfg.depth}
+    run.info = {
+        "method": method,
+        "step": step,
+        "deepxde": dde.__version__,
+        "stages": len(lengths),
+        "horizon": HORIZON,
+        "adam_steps": adam_steps,
+        "lbfgs_steps": lbfgs_steps,
+        "lr": cfg.lr,
+        "lr_final": cfg.lr * cfg.lr_final_ratio,
+        "flow_points_per_adam_step": cfg.batch_size,
+        "lbfgs_points": cfg.lbfgs_points,
+        "warm_start": not one_stage,
+        "checkpoint_every": every,
+        "lbfgs_checkpoint_every": lbfgs_every,
+        "float": "float32",
+        "initializer": "Glorot normal",
+        "width": cfg.width,
+        "depth": cfg.depth,
+    }
     clock = Clock()
     lo, hi = system.train_domain[:, 0].tolist(), system.train_domain[:, 1].tolist()
     pde = _dde_pde(dde, system)
@@ -404,14 +443,17 @@ def _run_deepxde(name: str, method: str, step: float | None, args, system, dde) 
         def bcs(nb, batched):
             kw = {"batch_size": nb} if batched else {}
             sl = slice(None) if batched else slice(0, nb)
-            return [dde.icbc.PointSetBC(origin_pts[sl], np.zeros((len(origin_pts[sl]), 1)), **kw),
-                    dde.icbc.PointSetBC(term_pts[sl], term_vals[sl], **kw)], 0
+            return [
+                dde.icbc.PointSetBC(origin_pts[sl], np.zeros((len(origin_pts[sl]), 1)), **kw),
+                dde.icbc.PointSetBC(term_pts[sl], term_vals[sl], **kw),
+            ], 0
 
         # ---- Adam: batch_size fresh flow points every step (PDEPointResampler), cosine decay as adam_lbfgs.
         t0 = time.perf_counter()
         ic_bcs, n_init = bcs(nb_adam, batched=True)
-        data = dde.data.TimePDE(geom, pde, ic_bcs, num_domain=cfg.batch_size, num_initial=n_init,
-                                train_distribution="pseudo")
+        data = dde.data.TimePDE(
+            geom, pde, ic_bcs, num_domain=cfg.batch_size, num_initial=n_init, train_distribution="pseudo"
+        )
         model = dde.Model(data, net)
         model.compile("adam", lr=cfg.lr, decay=("cosine", adam_steps, cfg.lr * cfg.lr_final_ratio), verbose=0)
         resampler = dde.callbacks.PDEPointResampler(period=1, pde_points=True, bc_points=True)
@@ -426,8 +468,9 @@ def _run_deepxde(name: str, method: str, step: float | None, args, system, dde) 
         if lbfgs_steps > 0:
             t0 = time.perf_counter()
             ic_bcs, n_init = bcs(nb_lbfgs, batched=False)
-            data = dde.data.TimePDE(geom, pde, ic_bcs, num_domain=cfg.lbfgs_points, num_initial=n_init,
-                                    train_distribution="pseudo")
+            data = dde.data.TimePDE(
+                geom, pde, ic_bcs, num_domain=cfg.lbfgs_points, num_initial=n_init, train_distribution="pseudo"
+            )
             dde.optimizers.set_LBFGS_options(maxcor=50, ftol=1e-15, gtol=1e-12, maxiter=lbfgs_steps)
             # E checkpoints of the one-stage run: DeepXDE calls the callbacks once per torch LBFGS.step, i.e.
             # every ``iter_per_step`` iterations (1000 by default); make that the checkpoint interval.
@@ -437,8 +480,11 @@ def _run_deepxde(name: str, method: str, step: float | None, args, system, dde) 
             dde.optimizers.config.LBFGS_options.update(iter_per_step=per_step, fun_per_step=int(per_step * 1.25))
             model = dde.Model(data, net)
             model.compile("L-BFGS", verbose=0)
-            lb = _DdeCheckpoint(dde, 1 if one_stage else 0,
-                                lambda: check(T=T_done + length, phase="lbfgs", step=adam_steps + n_iter(model)))
+            lb = _DdeCheckpoint(
+                dde,
+                1 if one_stage else 0,
+                lambda: check(T=T_done + length, phase="lbfgs", step=adam_steps + n_iter(model)),
+            )
             run.info["setup_per_phase"].append(time.perf_counter() - t0)
             clock.start()
             model.train(callbacks=[lb], verbose=0)
@@ -464,6 +510,7 @@ def n_iter(model) -> int:
 
 # ---------------------------------------------------------------------- tables
 
+
 def _ratio(a, b, a_total, b_total):
     """Speed-up b/a of a method (time a, or None: not reached within a_total) against the paper (b, b_total)."""
     if a is not None and b is not None and a > 0:
@@ -488,13 +535,20 @@ def summarize(runs: dict, statuses: dict, plan: dict) -> dict:
             continue
         r = runs[name]
         fin = r.final()
-        d = {"status": status, "method": method, "step": step, "description": describe(method, step),
-             "setup_time": r.setup_time,
-             "train_time": r.train_time, "eval_time": r.eval_time,
-             "time_to": {f"{t:g}": r.time_to(t) for t in targets},
-             "time_to_including_setup": {f"{t:g}": r.time_to(t, "train_plus_setup") for t in targets},
-             "final": {k: fin.get(k) for k in ("E", "E_boundary", "value_max_error", "policy_max_error")},
-             "info": r.info, "trace": r.trace}
+        d = {
+            "status": status,
+            "method": method,
+            "step": step,
+            "description": describe(method, step),
+            "setup_time": r.setup_time,
+            "train_time": r.train_time,
+            "eval_time": r.eval_time,
+            "time_to": {f"{t:g}": r.time_to(t) for t in targets},
+            "time_to_including_setup": {f"{t:g}": r.time_to(t, "train_plus_setup") for t in targets},
+            "final": {k: fin.get(k) for k in ("E", "E_boundary", "value_max_error", "policy_max_error")},
+            "info": r.info,
+            "trace": r.trace,
+        }
         if paper_final is not None:
             d["time_to_paper_final_E"] = r.time_to(paper_final)
             d["time_to_paper_final_E_including_setup"] = r.time_to(paper_final, "train_plus_setup")
@@ -502,10 +556,10 @@ def summarize(runs: dict, statuses: dict, plan: dict) -> dict:
             pf = paper.final()
             ratios = {}
             for t in targets:
-                ratios[f"speedup_to_{t:g}"] = _ratio(r.time_to(t), paper.time_to(t), r.train_time,
-                                                     paper.train_time)[1]
-            ratios["speedup_to_paper_final_E"] = _ratio(r.time_to(paper_final), paper.time_to(paper_final),
-                                                        r.train_time, paper.train_time)[1]
+                ratios[f"speedup_to_{t:g}"] = _ratio(r.time_to(t), paper.time_to(t), r.train_time, paper.train_time)[1]
+            ratios["speedup_to_paper_final_E"] = _ratio(
+                r.time_to(paper_final), paper.time_to(paper_final), r.train_time, paper.train_time
+            )[1]
             for k in ("E", "value_max_error", "policy_max_error"):
                 ratios[f"final_{k}_ratio"] = fin[k] / pf[k] if pf.get(k) else None
             ratios["train_time_ratio"] = r.train_time / paper.train_time if paper.train_time else None
@@ -547,43 +601,67 @@ def write_tables(summary: dict, meta: dict, out_dir: Path):
         f"{meta['checkpoint_every']} Adam steps / {meta['lbfgs_checkpoint_every']} L-BFGS iterations (one stage, "
         "before budget scaling), training clock paused. Times are training wall seconds to the first check at "
         "or below the target; set-up is apart. Errors are max over the same grid against V*, mu*.",
-        ""]
+        "",
+    ]
     pf_head = f"t(E ≤ paper final {pf:.2e}) s" if pf is not None else "t(E ≤ paper final) s"
-    lines += [f"| method | setup s | training s | t(E ≤ 1e-3) s | t(E ≤ 1.5e-4) s | {pf_head} | final E | "
-              "max abs V err | max abs mu err |", "|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        f"| method | setup s | training s | t(E ≤ 1e-3) s | t(E ≤ 1.5e-4) s | {pf_head} | final E | "
+        "max abs V err | max abs mu err |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, d in methods.items():
         if "final" not in d:
             lines.append(f"| {name} | {d['status']} | | | | | | | |")
             continue
         f = d["final"]
-        lines.append(f"| {name}: {d['description']} | {d['setup_time']:.1f} | {d['train_time']:.1f} | "
-                     f"{_t(d['time_to']['0.001'])} | {_t(d['time_to']['0.00015'])} | "
-                     f"{_t(d.get('time_to_paper_final_E'))} | {_e(f['E'])} | {_e(f['value_max_error'])} | "
-                     f"{_e(f['policy_max_error'])} |")
-    lines += ["", "Against the paper's recipe (speed-up = paper's training time to the target / the method's; "
-              "'> x': the paper never got there, x uses its whole budget; '< x': the method never got there):", "",
-              "| method | speed-up to 1e-3 | speed-up to 1.5e-4 | speed-up to paper's final E | final E ratio | "
-              "max abs V err ratio | training time ratio |", "|---|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {name}: {d['description']} | {d['setup_time']:.1f} | {d['train_time']:.1f} | "
+            f"{_t(d['time_to']['0.001'])} | {_t(d['time_to']['0.00015'])} | "
+            f"{_t(d.get('time_to_paper_final_E'))} | {_e(f['E'])} | {_e(f['value_max_error'])} | "
+            f"{_e(f['policy_max_error'])} |"
+        )
+    lines += [
+        "",
+        "Against the paper's recipe (speed-up = paper's training time to the target / the method's; "
+        "'> x': the paper never got there, x uses its whole budget; '< x': the method never got there):",
+        "",
+        "| method | speed-up to 1e-3 | speed-up to 1.5e-4 | speed-up to paper's final E | final E ratio | "
+        "max abs V err ratio | training time ratio |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, d in methods.items():
         v = d.get("vs_paper")
         if not v:
             continue
-        lines.append(f"| {name} | {v['speedup_to_0.001']} | {v['speedup_to_0.00015']} | "
-                     f"{v['speedup_to_paper_final_E']} | {_e(v['final_E_ratio'], '.3g')} | "
-                     f"{_e(v['final_value_max_error_ratio'], '.3g')} | {_e(v['train_time_ratio'], '.3g')} |")
-    lines += ["", "Including set-up (training + set-up seconds to the target):", "",
-              "| method | to 1e-3 | to 1.5e-4 | to paper's final E |", "|---|---|---|---|"]
+        lines.append(
+            f"| {name} | {v['speedup_to_0.001']} | {v['speedup_to_0.00015']} | "
+            f"{v['speedup_to_paper_final_E']} | {_e(v['final_E_ratio'], '.3g')} | "
+            f"{_e(v['final_value_max_error_ratio'], '.3g')} | {_e(v['train_time_ratio'], '.3g')} |"
+        )
+    lines += [
+        "",
+        "Including set-up (training + set-up seconds to the target):",
+        "",
+        "| method | to 1e-3 | to 1.5e-4 | to paper's final E |",
+        "|---|---|---|---|",
+    ]
     for name, d in methods.items():
         if "final" in d:
             w = d["time_to_including_setup"]
-            lines.append(f"| {name} | {_t(w['0.001'])} | {_t(w['0.00015'])} | "
-                         f"{_t(d.get('time_to_paper_final_E_including_setup'))} |")
+            lines.append(
+                f"| {name} | {_t(w['0.001'])} | {_t(w['0.00015'])} | "
+                f"{_t(d.get('time_to_paper_final_E_including_setup'))} |"
+            )
     lines += best_step_table(summary.get("best", {}), pf)
     goal = goal_lines(methods, summary.get("best", {}), pf)
     if goal:
-        lines += ["", "Goal (our default reaches the paper's final accuracy at least 5x faster than the paper's "
-                  "recipe and than DeepXDE). Every method is taken at its best chain step for this target, ours "
-                  "included:", ""] + goal
+        lines += [
+            "",
+            "Goal (our default reaches the paper's final accuracy at least 5x faster than the paper's "
+            "recipe and than DeepXDE). Every method is taken at its best chain step for this target, ours "
+            "included:",
+            "",
+        ] + goal
     lines += ["", f"Paper's reported final E for this run: {PAPER_E_QUARTIC:g} (quoted). Full traces: `speed.json`."]
     (out_dir / "speed.md").write_text("\n".join(lines) + "\n")
 
@@ -608,8 +686,10 @@ def best_steps(methods: dict, pf) -> dict:
     if pf is not None:
         getters["paper_final_E"] = lambda d: d.get("time_to_paper_final_E")
     families = [m for m in METHODS if any(d.get("method") == m and "final" in d for d in methods.values())]
-    return {target: {m: dict(zip(("run", "time"), best_run(methods, m, get))) for m in families}
-            for target, get in getters.items()}
+    return {
+        target: {m: dict(zip(("run", "time"), best_run(methods, m, get))) for m in families}
+        for target, get in getters.items()
+    }
 
 
 def best_step_table(best: dict, pf) -> list[str]:
@@ -619,12 +699,17 @@ def best_step_table(best: dict, pf) -> list[str]:
     label = {target: f"E ≤ {target}" for target in best}
     if "paper_final_E" in best:
         label["paper_final_E"] = f"E ≤ paper final {pf:.2e}"
-    lines = ["", "Each method at its best chain step for each target (training s, the run that got there first; "
-             "speed-up: that time / our default's best time):", "",
-             "| method | " + " | ".join(label[t] for t in best) + " |", "|---|" + "---|" * len(best)]
+    lines = [
+        "",
+        "Each method at its best chain step for each target (training s, the run that got there first; "
+        "speed-up: that time / our default's best time):",
+        "",
+        "| method | " + " | ".join(label[t] for t in best) + " |",
+        "|---|" + "---|" * len(best),
+    ]
     for m in next(iter(best.values())):
         cells = []
-        for target, row in best.items():
+        for row in best.values():
             name, t = row[m]["run"], row[m]["time"]
             ours = row["default"]["time"]
             if t is None:
@@ -652,8 +737,10 @@ def goal_lines(methods: dict, best: dict, pf) -> list[str]:
         if to is None:
             budget = methods[name]["train_time"]
             verdict = "met" if budget / t >= 5 else "undecided"
-            out.append(f"- {other}: no run reached it (longest: {name}, {budget:.1f} s): speed-up > "
-                       f"{budget / t:.2f} ({verdict}).")
+            out.append(
+                f"- {other}: no run reached it (longest: {name}, {budget:.1f} s): speed-up > "
+                f"{budget / t:.2f} ({verdict})."
+            )
         else:
             verdict = "met" if to / t >= 5 else "not met"
             out.append(f"- {other}: {to:.1f} s ({name}): speed-up {to / t:.2f} ({verdict}).")
@@ -667,6 +754,7 @@ def goal_lines(methods: dict, best: dict, pf) -> list[str]:
 
 # ---------------------------------------------------------------------- main
 
+
 def warm_up(device: str = "cpu") -> float:
     """Pay one-time lazy costs before any clock runs: the first ``torch.optim.Adam`` of a process imports
     torch._dynamo (about 1.5 s here), which would otherwise land in whichever method runs first; on a GPU, the
@@ -677,17 +765,24 @@ def warm_up(device: str = "cpu") -> float:
     for dtype in (torch.float64, torch.float32):
         w = torch.randn(5, 4, dtype=dtype, device=device)
         for n in (3, 5):  # fewer and more points than weights: both of its solves
-            levenberg_marquardt(torch.zeros(4, dtype=dtype, device=device), lambda th, a: (a * th).sum() - 1.0,
-                                lambda k: (w[:k],), steps=2, points=n)
+            levenberg_marquardt(
+                torch.zeros(4, dtype=dtype, device=device),
+                lambda th, a: (a * th).sum() - 1.0,
+                lambda k: (w[:k],),
+                steps=2,
+                points=n,
+            )
     net = torch.nn.Sequential(torch.nn.Linear(3, 8), torch.nn.Tanh(), torch.nn.Linear(8, 1)).to(device)
     x = torch.randn(16, 3, requires_grad=True, device=device)
     for opt in (torch.optim.Adam(net.parameters(), lr=1e-3), torch.optim.LBFGS(net.parameters(), max_iter=2)):
+
         def closure():
             opt.zero_grad()
             (g,) = torch.autograd.grad(net(x).sum(), x, create_graph=True)
             loss = (g**2).mean()
             loss.backward()
             return loss
+
         opt.step(closure)
     torch.optim.lr_scheduler.LambdaLR(torch.optim.Adam(net.parameters()), lambda k: 1.0)
     sync()
@@ -714,23 +809,49 @@ def _cpu() -> str:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {','.join(METHODS)}")
-    p.add_argument("--steps", default=",".join(f"{s:g}" for s in STEPS),
-                   help="chain steps (s) for every chain method but the paper's recipe; each must divide T = 4")
-    p.add_argument("--budget-scale", type=float, default=1.0,
-                   help="multiplies every step count and time cap (0.01-0.02: a smoke test)")
-    p.add_argument("--paper-stage-seconds", type=float, default=60.0,
-                   help="wall-clock cap per stage of the paper recipe (its stop rule may never fire)")
-    p.add_argument("--checkpoint-every", type=int, default=500,
-                   help="Adam steps between E checks in the one-stage DeepXDE run (scaled by --budget-scale)")
-    p.add_argument("--lbfgs-checkpoint-every", type=int, default=100,
-                   help="L-BFGS iterations between E checks in the one-stage DeepXDE run (scaled)")
+    p.add_argument(
+        "--steps",
+        default=",".join(f"{s:g}" for s in STEPS),
+        help="chain steps (s) for every chain method but the paper's recipe; each must divide T = 4",
+    )
+    p.add_argument(
+        "--budget-scale",
+        type=float,
+        default=1.0,
+        help="multiplies every step count and time cap (0.01-0.02: a smoke test)",
+    )
+    p.add_argument(
+        "--paper-stage-seconds",
+        type=float,
+        default=60.0,
+        help="wall-clock cap per stage of the paper recipe (its stop rule may never fire)",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=500,
+        help="Adam steps between E checks in the one-stage DeepXDE run (scaled by --budget-scale)",
+    )
+    p.add_argument(
+        "--lbfgs-checkpoint-every",
+        type=int,
+        default=100,
+        help="L-BFGS iterations between E checks in the one-stage DeepXDE run (scaled)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (the same for every method)")
-    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
-                   help="where every method trains (cpu: GPUs are hidden from torch and DeepXDE)")
+    p.add_argument(
+        "--device",
+        choices=("cpu", "cuda"),
+        default="cpu",
+        help="where every method trains (cpu: GPUs are hidden from torch and DeepXDE)",
+    )
     p.add_argument("--out", type=Path, default=RESULTS, help="folder for speed.md and speed.json")
-    p.add_argument("--rewrite", action="store_true",
-                   help="no training: recompute the derived tables of the run stored in --out/speed.json")
+    p.add_argument(
+        "--rewrite",
+        action="store_true",
+        help="no training: recompute the derived tables of the run stored in --out/speed.json",
+    )
     args = p.parse_args(argv)
     if args.rewrite:
         stored = json.loads((args.out / "speed.json").read_text())
@@ -769,13 +890,24 @@ def main(argv=None):
         torch.set_default_device(None)  # no device mode outside DeepXDE's own GPU runs (run_deepxde)
 
     warm = warm_up(args.device)
-    meta = provenance(seed=args.seed, threads=torch.get_num_threads(), budget_scale=args.budget_scale,
-                      paper_stage_seconds=args.paper_stage_seconds, checkpoint_every=args.checkpoint_every,
-                      lbfgs_checkpoint_every=args.lbfgs_checkpoint_every, methods=methods, steps=steps,
-                      deepxde=(dde.__version__ if dde is not None else "not installed"),
-                      deepxde_import_seconds=dde_import, warm_up_seconds=warm, scipy=__import__("scipy").__version__,
-                      device=args.device, machine=_machine(args.device),
-                      targets=list(TARGETS), paper_reported_final_E=PAPER_E_QUARTIC)
+    meta = provenance(
+        seed=args.seed,
+        threads=torch.get_num_threads(),
+        budget_scale=args.budget_scale,
+        paper_stage_seconds=args.paper_stage_seconds,
+        checkpoint_every=args.checkpoint_every,
+        lbfgs_checkpoint_every=args.lbfgs_checkpoint_every,
+        methods=methods,
+        steps=steps,
+        deepxde=(dde.__version__ if dde is not None else "not installed"),
+        deepxde_import_seconds=dde_import,
+        warm_up_seconds=warm,
+        scipy=__import__("scipy").__version__,
+        device=args.device,
+        machine=_machine(args.device),
+        targets=list(TARGETS),
+        paper_reported_final_E=PAPER_E_QUARTIC,
+    )
     runs, statuses, plan = {}, {}, {}
     todo = variants(methods, steps)
     for name, m, step in todo:
@@ -785,15 +917,19 @@ def main(argv=None):
             statuses[name] = dde_missing
             continue
         try:
-            runs[name] = (run_deepxde(name, m, step, args, system, dde) if m.startswith("deepxde")
-                          else run_pinnhjb(name, m, step, args, system))
+            runs[name] = (
+                run_deepxde(name, m, step, args, system, dde)
+                if m.startswith("deepxde")
+                else run_pinnhjb(name, m, step, args, system)
+            )
             statuses[name] = "ok"
         except Exception as exc:  # noqa: BLE001 - one failed method must not lose the others' numbers
             traceback.print_exc()
             statuses[name] = f"error: {type(exc).__name__}: {exc}"
         # the tables so far, after every run: an interrupted benchmark keeps what it measured
-        write_tables(summarize(runs, statuses, plan), {**meta, "runs_done": len(plan), "runs_planned": len(todo)},
-                     args.out)
+        write_tables(
+            summarize(runs, statuses, plan), {**meta, "runs_done": len(plan), "runs_planned": len(todo)}, args.out
+        )
     print((args.out / "speed.md").read_text())
     return 1 if any(s.startswith("error") for s in statuses.values()) else 0
 

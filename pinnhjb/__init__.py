@@ -7,6 +7,7 @@ our optimiser) · jacobian (its fast Jacobian) · solver (solve, extend = Theore
 baseline) · metrics (E, errors, closed loop) · storage (checkpoints with provenance). What belongs to the paper
 (its cases, the reproduction, the Theorem 3 demonstration, the chapters' loaders) is in the subpackage paper.
 """
+
 import importlib as _importlib
 
 from . import lq, metrics, residuals, systems
@@ -19,14 +20,44 @@ from .systems import ControlAffineSystem, get_system
 
 __version__ = "0.1.0"
 
-__all__ = ["systems", "lq", "metrics", "residuals", "reference", "TrainConfig", "FiniteHorizonSolver",
-           "SteadyStateSolver", "FiniteHorizonSolution", "SteadyStateSolution", "Stage", "ControlAffineSystem",
-           "get_system", "save", "load", "CheckpointError", "DivergenceError", "__version__"]
+__all__ = [
+    "systems",
+    "lq",
+    "metrics",
+    "residuals",
+    "reference",
+    "TrainConfig",
+    "FiniteHorizonSolver",
+    "SteadyStateSolver",
+    "FiniteHorizonSolution",
+    "SteadyStateSolution",
+    "Stage",
+    "ControlAffineSystem",
+    "get_system",
+    "save",
+    "load",
+    "CheckpointError",
+    "DivergenceError",
+    "__version__",
+]
 
 # Submodules imported on first use (``ph.reference`` works after ``import pinnhjb``), so that importing the
 # package stays cheap: the reference solver, the paper's reproduction, the plots and widgets.
-_LAZY = ("reference", "paper", "plots", "widgets", "gauss_newton", "jacobian", "pinn", "training", "solver",
-         "solution", "storage", "config", "cli")
+_LAZY = (
+    "reference",
+    "paper",
+    "plots",
+    "widgets",
+    "gauss_newton",
+    "jacobian",
+    "pinn",
+    "training",
+    "solver",
+    "solution",
+    "storage",
+    "config",
+    "cli",
+)
 
 
 def __getattr__(name):

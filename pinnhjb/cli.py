@@ -9,6 +9,7 @@
 every stage (atomic), so an interrupted or failing run keeps its finished stages; a diverged stage is an error
 (exit 2), never a saved untrained network.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -80,8 +81,10 @@ def _system(args):
     known = [k for k in inspect.signature(builder).parameters]
     for key, value in params.items():
         if key not in known:
-            raise UsageError(f"--param {key}={value}: system {args.system} has no parameter {key!r} "
-                             f"(its parameters: {', '.join(known) or 'none'})")
+            raise UsageError(
+                f"--param {key}={value}: system {args.system} has no parameter {key!r} "
+                f"(its parameters: {', '.join(known) or 'none'})"
+            )
     try:
         return get_system(args.system, **params)
     except (TypeError, ValueError) as exc:
@@ -101,11 +104,15 @@ def _config(args) -> TrainConfig:
 
 def _check_horizons(args):
     if args.steady_state:
-        given = [flag for flag, value in (("--horizon", args.horizon), ("--extend-to", args.extend_to),
-                                          ("--step", args.step)) if value is not None]
+        given = [
+            flag
+            for flag, value in (("--horizon", args.horizon), ("--extend-to", args.extend_to), ("--step", args.step))
+            if value is not None
+        ]
         if given:
-            raise UsageError(f"--steady-state trains the direct steady-state PINN, which has no horizon: drop "
-                             f"{', '.join(given)}")
+            raise UsageError(
+                f"--steady-state trains the direct steady-state PINN, which has no horizon: drop {', '.join(given)}"
+            )
         return
     args.horizon = 1.0 if args.horizon is None else args.horizon
     for flag, value in (("--horizon", args.horizon), ("--extend-to", args.extend_to), ("--step", args.step)):
@@ -118,8 +125,10 @@ def _check_horizons(args):
             raise UsageError(f"--extend-to {args.extend_to:g} must exceed --horizon {args.horizon:g}")
         step = args.extend_to - args.horizon if args.step is None else args.step
         if (args.extend_to - args.horizon) / step - 1e-9 > MAX_STAGES_PER_CALL:
-            raise UsageError(f"--step {step:g} from --horizon {args.horizon:g} to --extend-to {args.extend_to:g} "
-                             f"would train more than {MAX_STAGES_PER_CALL} stages; choose a larger step")
+            raise UsageError(
+                f"--step {step:g} from --horizon {args.horizon:g} to --extend-to {args.extend_to:g} "
+                f"would train more than {MAX_STAGES_PER_CALL} stages; choose a larger step"
+            )
 
 
 def _train(args) -> int:
@@ -139,8 +148,11 @@ def _train(args) -> int:
     def checkpoint(current):
         save(current, out, seed=args.seed)
         saved[:] = [current.horizon]
-        print(f"T = {current.horizon:g}: E = {current.metrics['E']:.4e}  "
-              f"(stage {current.stages[-1].history.wall_time:.1f} s) -> {out}", flush=True)
+        print(
+            f"T = {current.horizon:g}: E = {current.metrics['E']:.4e}  "
+            f"(stage {current.stages[-1].history.wall_time:.1f} s) -> {out}",
+            flush=True,
+        )
 
     solver = FiniteHorizonSolver(system, **kw)
     try:
@@ -227,8 +239,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=_train)
     e = sub.add_parser("evaluate", help="print E and the errors of a checkpoint")
     e.add_argument("checkpoint")
-    e.add_argument("--points-per-dim", type=_points_per_dim, default=None,
-                   help="grid points per axis of Omega for E (an integer >= 2; default: the book's grid)")
+    e.add_argument(
+        "--points-per-dim",
+        type=_points_per_dim,
+        default=None,
+        help="grid points per axis of Omega for E (an integer >= 2; default: the book's grid)",
+    )
     e.add_argument("--device", default=None)
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=_evaluate)

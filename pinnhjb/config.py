@@ -3,6 +3,7 @@
 :meth:`TrainConfig.preset` returns either recipe; ``paper`` takes the system's name because the paper
 uses a different network, learning rate, decay and stopping threshold per example (Section 6).
 """
+
 from __future__ import annotations
 
 import math
@@ -17,12 +18,15 @@ __all__ = ["TrainConfig", "PAPER_SETTINGS", "PRESETS"]
 # The paper's Section 6 settings per example. Omitted entries (third-order learning rate and decay)
 # are not stated in the paper; we reuse the quartic system's values and say so in the book.
 PAPER_SETTINGS: dict[str, dict] = {
-    "pendulum": dict(width=100, depth=3, n_flow=10000, n_boundary=1600, n_origin=1600,
-                     lr=0.005, lr_decay=0.002, stop_loss=1e-3),
-    "quartic": dict(width=250, depth=3, n_flow=10000, n_boundary=1600, n_origin=1600,
-                    lr=0.01, lr_decay=0.003, stop_loss=1e-4),
-    "third_order": dict(width=500, depth=3, n_flow=20000, n_boundary=27000, n_origin=27000,
-                        lr=0.01, lr_decay=0.003, stop_loss=1e-4),
+    "pendulum": dict(
+        width=100, depth=3, n_flow=10000, n_boundary=1600, n_origin=1600, lr=0.005, lr_decay=0.002, stop_loss=1e-3
+    ),
+    "quartic": dict(
+        width=250, depth=3, n_flow=10000, n_boundary=1600, n_origin=1600, lr=0.01, lr_decay=0.003, stop_loss=1e-4
+    ),
+    "third_order": dict(
+        width=500, depth=3, n_flow=20000, n_boundary=27000, n_origin=27000, lr=0.01, lr_decay=0.003, stop_loss=1e-4
+    ),
 }
 
 
@@ -135,27 +139,35 @@ class TrainConfig:
             "lm_min_progress": (real(self.lm_min_progress, 1, none=True), "a finite number >= 1 or None"),
             "ansatz": (isinstance(self.ansatz, bool), "True or False"),
             "warm_start": (isinstance(self.warm_start, bool), "True or False"),
-            "activation": (isinstance(self.activation, str) and self.activation in ACTIVATIONS,
-                           f"one of {sorted(ACTIVATIONS)}"),
+            "activation": (
+                isinstance(self.activation, str) and self.activation in ACTIVATIONS,
+                f"one of {sorted(ACTIVATIONS)}",
+            ),
             "dtype": (self.dtype in ("float32", "float64"), "'float32' or 'float64'"),
             "sampling": (self.sampling in ("resample", "fixed"), "'resample' or 'fixed'"),
-            "schedule": (self.schedule in ("cosine", "inverse_time", "constant"),
-                         "'cosine', 'inverse_time' or 'constant'"),
+            "schedule": (
+                self.schedule in ("cosine", "inverse_time", "constant"),
+                "'cosine', 'inverse_time' or 'constant'",
+            ),
         }
         bad = [k for k, (ok, _) in checks.items() if not ok]
         if bad:
-            raise ValueError(f"invalid TrainConfig field(s) {bad}: " + "; ".join(
-                f"{k}={getattr(self, k)!r} (expected {checks[k][1]})" for k in bad))
+            raise ValueError(
+                f"invalid TrainConfig field(s) {bad}: "
+                + "; ".join(f"{k}={getattr(self, k)!r} (expected {checks[k][1]})" for k in bad)
+            )
         if self.lm_points_coarse is not None and self.lm_points_coarse >= self.lm_points:
-            raise ValueError(f"lm_points_coarse={self.lm_points_coarse} must be fewer than lm_points={self.lm_points} "
-                             "(the coarse level comes first); set lm_points_coarse=None to use lm_points throughout")
+            raise ValueError(
+                f"lm_points_coarse={self.lm_points_coarse} must be fewer than lm_points={self.lm_points} "
+                "(the coarse level comes first); set lm_points_coarse=None to use lm_points throughout"
+            )
         if self.lm_steps > 0 and not self.ansatz:
             raise ValueError("lm_steps > 0 needs ansatz=True (Levenberg-Marquardt minimises the flow residual only)")
         if self.sampling == "fixed" and self.n_flow < self.batch_size:
             raise ValueError(f"n_flow={self.n_flow} must be at least batch_size={self.batch_size}")
 
     @classmethod
-    def preset(cls, name: str = "default", system: str | None = None, **overrides) -> "TrainConfig":
+    def preset(cls, name: str = "default", system: str | None = None, **overrides) -> TrainConfig:
         """``default`` (ours), ``adam_lbfgs`` (ours, first-order), ``paper`` (Section 6, needs ``system``), or
         ``quick`` (tests, smoke runs)."""
         if name not in PRESETS:
@@ -163,22 +175,24 @@ class TrainConfig:
         base = dict(PRESETS[name])
         if name == "paper":
             if system not in PAPER_SETTINGS:
-                raise KeyError(f"the paper preset exists for {sorted(PAPER_SETTINGS)} only (the paper's Section 6 "
-                               f"sets network, learning rate and threshold per example); got system={system!r}: "
-                               f"borrow one example's settings with TrainConfig.preset('paper', system='pendulum'), "
-                               f"or use 'default'")
+                raise KeyError(
+                    f"the paper preset exists for {sorted(PAPER_SETTINGS)} only (the paper's Section 6 "
+                    f"sets network, learning rate and threshold per example); got system={system!r}: "
+                    f"borrow one example's settings with TrainConfig.preset('paper', system='pendulum'), "
+                    f"or use 'default'"
+                )
             base.update(PAPER_SETTINGS[system])
         base.update(overrides)
         return cls(**base)
 
-    def replace(self, **changes) -> "TrainConfig":
+    def replace(self, **changes) -> TrainConfig:
         return replace(self, **changes)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
+    def from_dict(cls, d: dict) -> TrainConfig:
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names
         if unknown:
@@ -199,9 +213,28 @@ PRESETS: dict[str, dict] = {
     "adam_lbfgs": dict(_FIRST_ORDER, adam_steps=2500, lbfgs_steps=800),
     # Section 6: soft loss MSE_e + MSE_b + MSE_in, fixed data, Adam with inverse-time decay per
     # mini-batch of 500, stop when every mini-batch loss is below the threshold; capped by steps/time.
-    "paper": dict(_FIRST_ORDER, ansatz=False, sampling="fixed", batch_size=500, schedule="inverse_time",
-                  adam_steps=20000, lbfgs_steps=0, warm_start=False, max_time=600.0),
+    "paper": dict(
+        _FIRST_ORDER,
+        ansatz=False,
+        sampling="fixed",
+        batch_size=500,
+        schedule="inverse_time",
+        adam_steps=20000,
+        lbfgs_steps=0,
+        warm_start=False,
+        max_time=600.0,
+    ),
     # A few seconds per stage: for tests and smoke runs, not for accuracy.
-    "quick": dict(_FIRST_ORDER, width=32, depth=2, batch_size=256, pool_size=4096, adam_steps=150, lr=5e-3,
-                  lbfgs_steps=20, lbfgs_points=512, eval_points_per_dim=21),
+    "quick": dict(
+        _FIRST_ORDER,
+        width=32,
+        depth=2,
+        batch_size=256,
+        pool_size=4096,
+        adam_steps=150,
+        lr=5e-3,
+        lbfgs_steps=20,
+        lbfgs_points=512,
+        eval_points_per_dim=21,
+    ),
 }

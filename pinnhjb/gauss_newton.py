@@ -21,12 +21,13 @@ floor; once the loss stalls there, the iterations move to more points than weigh
 residual rather than one batch, and polish to the accuracy a full-size batch gives, in a fraction of the time
 that full-size batches from the start take.
 """
+
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import torch
 from torch import nn
@@ -44,8 +45,9 @@ class DivergenceError(FloatingPointError):
 
     def __init__(self, stage: str, optimiser: str, iteration: int, what: str, hint: str = ""):
         self.stage, self.optimiser, self.iteration = stage, optimiser, iteration
-        hint = hint or ("check the scale of the system (f, g, Q, R: overflow?) and that f, g, Q are finite on "
-                        "the training box")
+        hint = hint or (
+            "check the scale of the system (f, g, Q, R: overflow?) and that f, g, Q are finite on the training box"
+        )
         super().__init__(f"stage {stage}: {optimiser} diverged at iteration {iteration}: {what}; {hint}")
 
 
@@ -82,12 +84,22 @@ class LMResult:
     stop_reason: str
 
 
-def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sample: Callable[[int], tuple],
-                        steps: int, points: int | Sequence[int], damping: float = 1e-3,
-                        max_time: float | None = None, on_step: Callable[[int, float, float], None] | None = None,
-                        max_retries: int = 12, min_progress: float | None = None, window: int = 10,
-                        stall_windows: int = 2, desc: str = "LM",
-                        jacobian: Callable[..., tuple[Tensor, Tensor]] | None = None) -> LMResult:
+def levenberg_marquardt(
+    theta: Tensor,
+    point_residual: Callable[..., Tensor],
+    sample: Callable[[int], tuple],
+    steps: int,
+    points: int | Sequence[int],
+    damping: float = 1e-3,
+    max_time: float | None = None,
+    on_step: Callable[[int, float, float], None] | None = None,
+    max_retries: int = 12,
+    min_progress: float | None = None,
+    window: int = 10,
+    stall_windows: int = 2,
+    desc: str = "LM",
+    jacobian: Callable[..., tuple[Tensor, Tensor]] | None = None,
+) -> LMResult:
     """Minimise mean_i point_residual(theta, *batch_i)^2 over fresh batches from ``sample(points)``.
 
     ``point_residual(theta, *args)`` is one point's residual (a scalar) with ``args`` the point's data (the
@@ -103,11 +115,20 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
     ``point_arguments(data, t)``.
     """
     schedule = [int(n) for n in points] if isinstance(points, Sequence) else [int(points)]
-    if (steps < 0 or not schedule or min(schedule) < 1 or not 0 < damping < math.inf or window < 1 or stall_windows < 1
-            or any(b <= a for a, b in zip(schedule, schedule[1:]))):
-        raise ValueError(f"need steps >= 0, points >= 1 (a schedule must grow), damping > 0, window >= 1, "
-                         f"stall_windows >= 1 (damping finite); got {steps}, {points}, {damping}, {window}, "
-                         f"{stall_windows}")
+    if (
+        steps < 0
+        or not schedule
+        or min(schedule) < 1
+        or not 0 < damping < math.inf
+        or window < 1
+        or stall_windows < 1
+        or any(b <= a for a, b in zip(schedule, schedule[1:]))
+    ):
+        raise ValueError(
+            f"need steps >= 0, points >= 1 (a schedule must grow), damping > 0, window >= 1, "
+            f"stall_windows >= 1 (damping finite); got {steps}, {points}, {damping}, {window}, "
+            f"{stall_windows}"
+        )
     start = time.perf_counter()
     theta = theta.detach().clone()
     P = theta.numel()
@@ -164,8 +185,9 @@ def levenberg_marquardt(theta: Tensor, point_residual: Callable[..., Tensor], sa
             if len(log_losses) == window:
                 window_means.append(sum(log_losses) / window)
                 log_losses.clear()
-                if (len(window_means) > stall_windows
-                        and window_means[-1 - stall_windows] - window_means[-1] < math.log(min_progress)):
+                if len(window_means) > stall_windows and window_means[-1 - stall_windows] - window_means[-1] < math.log(
+                    min_progress
+                ):
                     if level + 1 == len(schedule):
                         stop = "stalled"
                         break

@@ -17,9 +17,10 @@ Several network rows may feed one residual (the ansatz evaluates N(x, t) and N(0
 ``copies = R`` the M = R N rows are R blocks of N, row i of every block feeding residual i, and the sums above run
 over the blocks too. Tested against ``vmap(jacrev(...))`` to rounding.
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -45,8 +46,9 @@ def _activation_derivative(layer: nn.Module, h: Tensor, y: Tensor) -> Tensor:
     return d
 
 
-def residual_jacobian(mlp: MLP, theta: Tensor, z: Tensor, dz: Tensor,
-                      residual_of: Callable[[Tensor, Tensor], Tensor], copies: int = 1) -> tuple[Tensor, Tensor]:
+def residual_jacobian(
+    mlp: MLP, theta: Tensor, z: Tensor, dz: Tensor, residual_of: Callable[[Tensor, Tensor], Tensor], copies: int = 1
+) -> tuple[Tensor, Tensor]:
     """Residuals r (N,) and their Jacobian J (N, P) in ``theta``, the MLP's weights flattened in
     ``mlp.parameters()`` order (as :class:`pinnhjb.gauss_newton.FlatParameters` does).
 
@@ -79,12 +81,14 @@ def residual_jacobian(mlp: MLP, theta: Tensor, z: Tensor, dz: Tensor,
                 a = y
         out, dout = a.squeeze(-1), da.squeeze(-1)
         r = residual_of(out, dout)
-        cot = torch.autograd.grad(r.sum(), [t for (_, _, h, dh) in tape for t in (h, dh)], allow_unused=True,
-                                  materialize_grads=True)
+        cot = torch.autograd.grad(
+            r.sum(), [t for (_, _, h, dh) in tape for t in (h, dh)], allow_unused=True, materialize_grads=True
+        )
     N = z.shape[0] // copies
     if r.shape != (N,):
-        raise ValueError(f"residual_of gave shape {tuple(r.shape)}; expected ({N},) for {z.shape[0]} rows in "
-                         f"{copies} block(s)")
+        raise ValueError(
+            f"residual_of gave shape {tuple(r.shape)}; expected ({N},) for {z.shape[0]} rows in {copies} block(s)"
+        )
 
     def per_residual(u: Tensor) -> Tensor:  # (M, C, w) -> (N, copies * C, w): every row next to its residual's
         return u.reshape(copies, N, *u.shape[1:]).transpose(0, 1).reshape(N, -1, u.shape[-1])

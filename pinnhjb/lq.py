@@ -17,6 +17,7 @@ solutions, so every claim of the paper can be checked exactly in the LQ case:
   when ``P_T`` has a negative semidefinite Riccati residual (e.g. ``P_T = c P_care``, c >= 1), not
   in general. Any PSD ``P_T`` lies between the two cases (eq:sandwich).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -150,9 +151,7 @@ class ARESolution:
     chosen: NDArray[np.complex128]
 
 
-def are_solutions(
-    A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, tol: float = 1e-9
-) -> list[ARESolution]:
+def are_solutions(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, tol: float = 1e-9) -> list[ARESolution]:
     """All real symmetric ARE solutions, the stabilizing one first.
 
     Each is a solution ``V(x) = x'Px`` of the steady-state HJB eq:HJB with ``V(0) = 0``, but only
@@ -312,8 +311,9 @@ class RiccatiSolution:
         return sol.y[:, -1].reshape(n, n)
 
 
-def convergence_bound(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, P_psi: ArrayLike, horizon: float,
-                      x0: ArrayLike) -> dict:
+def convergence_bound(
+    A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, P_psi: ArrayLike, horizon: float, x0: ArrayLike
+) -> dict:
     """Exact LQ check of the uniform convergence of V_T(., 0) to V* (Theorem 1 and the bound after it).
 
     For terminal cost ``psi(x) = x' P_psi x`` returns, over the initial states ``x0`` (N, n):

@@ -14,11 +14,12 @@
 ``value_fn`` arguments are batched torch callables x (N, n) -> V(x) (N,), differentiable in x; points are
 float64 on the CPU (solution objects move them to their own device and precision and back).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
@@ -30,12 +31,22 @@ from .residuals import SteadyStateHJB
 Tensor = torch.Tensor
 ValueFn = Callable[[Tensor], Tensor]
 
-__all__ = ["default_points_per_dim", "evaluation_grid", "infinite_horizon_residual",
-           "optimality_errors", "policy_of", "closed_loop", "ClosedLoopResult", "quadratic_fields",
-           "GRID_MAX_POINTS", "MC_SAMPLES", "uses_grid"]
+__all__ = [
+    "default_points_per_dim",
+    "evaluation_grid",
+    "infinite_horizon_residual",
+    "optimality_errors",
+    "policy_of",
+    "closed_loop",
+    "ClosedLoopResult",
+    "quadratic_fields",
+    "GRID_MAX_POINTS",
+    "MC_SAMPLES",
+    "uses_grid",
+]
 
 GRID_MAX_POINTS = 2**16  # 65536: 1001 points in 1-D, 101^2, 21^3, 9^4 and 9^5 grids all fit
-MC_SAMPLES = 2**15       # Monte Carlo sample size above the cap (standard error ~ 0.6% of the spread of E_e^2)
+MC_SAMPLES = 2**15  # Monte Carlo sample size above the cap (standard error ~ 0.6% of the spread of E_e^2)
 MC_SEED = 0
 _BATCH = 16384
 
@@ -49,8 +60,10 @@ def _points_per_dim(system, points_per_dim) -> int:
     if points_per_dim is None:
         return default_points_per_dim(system.n)
     if isinstance(points_per_dim, bool) or not isinstance(points_per_dim, (int, np.integer)) or points_per_dim < 2:
-        raise ValueError(f"points_per_dim must be an integer >= 2 (points per axis of the grid over Omega) or None "
-                         f"(the default for n={system.n}: {default_points_per_dim(system.n)}); got {points_per_dim!r}")
+        raise ValueError(
+            f"points_per_dim must be an integer >= 2 (points per axis of the grid over Omega) or None "
+            f"(the default for n={system.n}: {default_points_per_dim(system.n)}); got {points_per_dim!r}"
+        )
     return int(points_per_dim)
 
 
@@ -62,9 +75,11 @@ def uses_grid(system, points_per_dim: int | None = None) -> bool:
 def evaluation_grid(system, points_per_dim: int | None = None, dtype=torch.float64, device=None) -> Tensor:
     """The grid over Omega on which E is reported; refuses one above :data:`GRID_MAX_POINTS` points."""
     ppd = _points_per_dim(system, points_per_dim)
-    if ppd ** system.n > GRID_MAX_POINTS:
-        raise ValueError(f"a grid of {ppd}^{system.n} points exceeds GRID_MAX_POINTS={GRID_MAX_POINTS}; E is then "
-                         f"measured by Monte Carlo (infinite_horizon_residual with points=None)")
+    if ppd**system.n > GRID_MAX_POINTS:
+        raise ValueError(
+            f"a grid of {ppd}^{system.n} points exceeds GRID_MAX_POINTS={GRID_MAX_POINTS}; E is then "
+            f"measured by Monte Carlo (infinite_horizon_residual with points=None)"
+        )
     return system.grid(ppd, dtype=dtype, device=device)
 
 
@@ -84,8 +99,9 @@ def _chunks(x: Tensor, size: int = 16384):
     return torch.split(x, size)
 
 
-def infinite_horizon_residual(system, value_fn: ValueFn, points: Tensor | None = None,
-                              points_per_dim: int | None = None) -> dict:
+def infinite_horizon_residual(
+    system, value_fn: ValueFn, points: Tensor | None = None, points_per_dim: int | None = None
+) -> dict:
     """E = mean_i E_e(x_i)^2 + V(0)^2 (eq-e) on ``points`` (default: a grid over Omega).
 
     Returns ``{"E", "E_flow", "E_boundary", "E_zero"}`` where ``E_zero`` is E of the trivial V = 0 on the
@@ -120,8 +136,14 @@ def _monte_carlo_residual(system, value_fn: ValueFn, samples: int = MC_SAMPLES) 
     flow = total / samples
     var = max(total_sq / samples - flow**2, 0.0) * samples / max(samples - 1, 1)
     boundary = float(v0.reshape(()) ** 2)
-    return {"E": flow + boundary, "E_flow": flow, "E_boundary": boundary, "E_zero": zero / samples,
-            "E_stderr": math.sqrt(var / samples), "E_samples": samples}
+    return {
+        "E": flow + boundary,
+        "E_flow": flow,
+        "E_boundary": boundary,
+        "E_zero": zero / samples,
+        "E_stderr": math.sqrt(var / samples),
+        "E_samples": samples,
+    }
 
 
 def policy_of(system, value_fn: ValueFn) -> Callable[[Tensor], Tensor]:
@@ -134,8 +156,9 @@ def policy_of(system, value_fn: ValueFn) -> Callable[[Tensor], Tensor]:
     return mu
 
 
-def optimality_errors(system, value_fn: ValueFn, points: Tensor | None = None,
-                      points_per_dim: int | None = None) -> dict:
+def optimality_errors(
+    system, value_fn: ValueFn, points: Tensor | None = None, points_per_dim: int | None = None
+) -> dict:
     """Errors of V(.) and mu(.) against the system's known V*, mu* on ``points`` (default: grid over Omega).
 
     Returns max |V - V*|, RMS and MSE of V - V*, and the same for mu (max over points and inputs).
@@ -154,9 +177,11 @@ def optimality_errors(system, value_fn: ValueFn, points: Tensor | None = None,
         du.append(mu(xc) - system.policy_star(xc))
     dv, du = torch.cat(dv), torch.cat(du)
     return {
-        "value_max_error": float(dv.abs().max()), "value_rmse": float(dv.pow(2).mean().sqrt()),
+        "value_max_error": float(dv.abs().max()),
+        "value_rmse": float(dv.pow(2).mean().sqrt()),
         "value_mse": float(dv.pow(2).mean()),
-        "policy_max_error": float(du.abs().max()), "policy_rmse": float(du.pow(2).mean().sqrt()),
+        "policy_max_error": float(du.abs().max()),
+        "policy_rmse": float(du.pow(2).mean().sqrt()),
         "policy_mse": float(du.pow(2).mean()),
     }
 
@@ -180,8 +205,15 @@ class ClosedLoopResult:
         return float(np.mean(self.stabilized))
 
 
-def closed_loop(system, policy: Callable[..., Tensor], x0, t_final: float = 20.0, dt: float = 0.01,
-                tol: float = 1e-3, time_varying: bool = False) -> ClosedLoopResult:
+def closed_loop(
+    system,
+    policy: Callable[..., Tensor],
+    x0,
+    t_final: float = 20.0,
+    dt: float = 0.01,
+    tol: float = 1e-3,
+    time_varying: bool = False,
+) -> ClosedLoopResult:
     """Integrate xdot = f(x) + g(x) policy(x) and dJ/dt = Q(x) + u'Ru with classical RK4 (batched in torch).
 
     ``time_varying=True`` calls ``policy(x, t)`` instead (e.g. a finite-horizon mu_T(x, t) along its horizon).
@@ -216,8 +248,13 @@ def closed_loop(system, policy: Callable[..., Tensor], x0, t_final: float = 20.0
     us.append(rhs(z, steps * dt)[1])
     xt = torch.stack(xs).numpy()
     final = np.linalg.norm(xt[-1], axis=-1)
-    return ClosedLoopResult(t=np.linspace(0.0, steps * dt, steps + 1), x=xt, u=torch.stack(us).numpy(),
-                            cost=z[:, -1].numpy(), stabilized=np.isfinite(final) & (final < tol))
+    return ClosedLoopResult(
+        t=np.linspace(0.0, steps * dt, steps + 1),
+        x=xt,
+        u=torch.stack(us).numpy(),
+        cost=z[:, -1].numpy(),
+        stabilized=np.isfinite(final) & (final < tol),
+    )
 
 
 def quadratic_fields(A, B, Q, R, P, x) -> dict:

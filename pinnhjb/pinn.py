@@ -12,9 +12,10 @@
 * :func:`gradient` and :func:`value_and_gradients` differentiate a value by autograd; no finite differences
   anywhere. The residuals themselves (F_e, F_b, F_in, E_e) are the objects of :mod:`pinnhjb.residuals`.
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -31,8 +32,14 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
 }
 
 __all__ = [
-    "MLP", "FiniteHorizonValue", "SteadyStateValue", "ZeroTerminalCost", "QuadraticTerminalCost",
-    "ValueTerminalCost", "CallableTerminalCost", "value_and_gradients",
+    "MLP",
+    "FiniteHorizonValue",
+    "SteadyStateValue",
+    "ZeroTerminalCost",
+    "QuadraticTerminalCost",
+    "ValueTerminalCost",
+    "CallableTerminalCost",
+    "value_and_gradients",
     "gradient",
 ]
 
@@ -76,6 +83,7 @@ class _Scaled(nn.Module):
 
 
 # ---------------------------------------------------------------------- terminal costs
+
 
 class ZeroTerminalCost(nn.Module):
     """phi = 0 (the paper's choice in all its simulations)."""
@@ -130,7 +138,7 @@ class ValueTerminalCost(nn.Module):
     :meth:`FiniteHorizonValue.forward`, which walks the chain iteratively.
     """
 
-    def __init__(self, previous: "FiniteHorizonValue"):
+    def __init__(self, previous: FiniteHorizonValue):
         super().__init__()
         object.__setattr__(self, "previous", previous)  # not a submodule: see the class docstring
         for p in self.previous.parameters():
@@ -149,11 +157,21 @@ class ValueTerminalCost(nn.Module):
 
 # ---------------------------------------------------------------------- value networks
 
+
 class FiniteHorizonValue(_Scaled):
     """v_T(x, t) on Omega x [0, T] (Algorithm 1). See the module docstring for the ansatz."""
 
-    def __init__(self, n: int, horizon: float, train_domain, terminal_cost: nn.Module | None = None,
-                 width: int = 100, depth: int = 3, activation: str = "tanh", ansatz: bool = True):
+    def __init__(
+        self,
+        n: int,
+        horizon: float,
+        train_domain,
+        terminal_cost: nn.Module | None = None,
+        width: int = 100,
+        depth: int = 3,
+        activation: str = "tanh",
+        ansatz: bool = True,
+    ):
         super().__init__(train_domain)
         if not horizon > 0:
             raise ValueError(f"horizon must be positive; got {horizon}")
@@ -170,8 +188,9 @@ class FiniteHorizonValue(_Scaled):
 
     def input_scale(self, like: Tensor) -> Tensor:
         """d net_inputs / d (x, t), a diagonal: (1 / halfwidth, 2 / T), shape (n + 1,)."""
-        return torch.cat([self.scale_x_derivative(like),
-                          torch.full((1,), 2.0 / self.horizon, dtype=like.dtype, device=like.device)])
+        return torch.cat(
+            [self.scale_x_derivative(like), torch.full((1,), 2.0 / self.horizon, dtype=like.dtype, device=like.device)]
+        )
 
     def raw(self, x: Tensor, t: Tensor) -> Tensor:
         """The bare network N(x, t), inputs scaled to [-1, 1]."""
@@ -184,12 +203,15 @@ class FiniteHorizonValue(_Scaled):
         s = (self.horizon - t) / self.horizon
         return s * (self.raw(x, t) - self.raw(torch.zeros_like(x), t))
 
-    def chain(self) -> list["FiniteHorizonValue"]:
+    def chain(self) -> list[FiniteHorizonValue]:
         """This stage and the earlier stages its value depends on (through terminal costs V_prev(., 0)), newest
         first; a stage without the ansatz ends the chain (its value does not include its terminal cost)."""
         models = [self]
-        while models[-1].ansatz and isinstance(models[-1].terminal_cost, ValueTerminalCost) \
-                and models[-1].terminal_cost.previous.ansatz:
+        while (
+            models[-1].ansatz
+            and isinstance(models[-1].terminal_cost, ValueTerminalCost)
+            and models[-1].terminal_cost.previous.ansatz
+        ):
             models.append(models[-1].terminal_cost.previous)
         return models
 
@@ -217,8 +239,9 @@ class FiniteHorizonValue(_Scaled):
             value = c + value
         return value
 
-    def correction_derivatives(self, x: Tensor, t: Tensor, origin_times: Tensor | None = None,
-                               origin_index: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def correction_derivatives(
+        self, x: Tensor, t: Tensor, origin_times: Tensor | None = None, origin_index: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """grad_x and d/dt of :meth:`correction` per point, kept differentiable in the weights (for training).
 
         With ``origin_times`` (K,) and ``origin_index`` (N,) such that ``t = origin_times[origin_index]``, the
@@ -240,8 +263,9 @@ class FiniteHorizonValue(_Scaled):
         gx, nt_x, nt_0 = torch.autograd.grad(n_x.sum() + n_0.sum(), (x, t, origin_times), create_graph=True)
         return self.ansatz_derivatives(t, n_x, n_0[origin_index], gx, nt_x, nt_0[origin_index])
 
-    def ansatz_derivatives(self, t: Tensor, n_x: Tensor, n_0: Tensor, gx: Tensor, nt_x: Tensor,
-                           nt_0: Tensor) -> tuple[Tensor, Tensor]:
+    def ansatz_derivatives(
+        self, t: Tensor, n_x: Tensor, n_0: Tensor, gx: Tensor, nt_x: Tensor, nt_0: Tensor
+    ) -> tuple[Tensor, Tensor]:
         """grad_x and d/dt of the correction (T - t)/T (N(x, t) - N(0, t)) from N(x, t), N(0, t), grad_x N(x, t),
         d/dt N(x, t) and d/dt N(0, t) per point."""
         s = (self.horizon - t) / self.horizon
@@ -251,8 +275,9 @@ class FiniteHorizonValue(_Scaled):
 class SteadyStateValue(_Scaled):
     """V(x) for the direct steady-state PINN on eq. (4): N(x) - N(0) (ansatz) or N(x) (soft, as the paper)."""
 
-    def __init__(self, n: int, train_domain, width: int = 100, depth: int = 3, activation: str = "tanh",
-                 ansatz: bool = True):
+    def __init__(
+        self, n: int, train_domain, width: int = 100, depth: int = 3, activation: str = "tanh", ansatz: bool = True
+    ):
         super().__init__(train_domain)
         self.n = n
         self.ansatz = bool(ansatz)
@@ -273,6 +298,7 @@ def _broadcast_time(t, x: Tensor) -> Tensor:
 
 
 # ---------------------------------------------------------------------- autograd helpers
+
 
 def gradient(fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> tuple[Tensor, Tensor]:
     """Values fn(x) (N,) and their gradient in x (N, n) by autograd."""

@@ -6,6 +6,7 @@ or saved here. Figures are drawn for the book's content column: at most :data:`W
 :func:`use_book_style` once per notebook: it sets those fonts and makes the inline backend emit PNGs at twice
 the resolution (sharp on high-density screens, displayed at their size in inches x 100 px).
 """
+
 from __future__ import annotations
 
 import math
@@ -14,15 +15,36 @@ import matplotlib as mpl
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["WIDTH", "use_book_style", "panels", "grid_2d", "slice_mesh", "surface", "surfaces", "value_policy_residual",
-           "value_and_error", "policy_and_error", "loss_curve", "time_to_accuracy", "grouped_bars"]
+__all__ = [
+    "WIDTH",
+    "use_book_style",
+    "panels",
+    "grid_2d",
+    "slice_mesh",
+    "surface",
+    "surfaces",
+    "value_policy_residual",
+    "value_and_error",
+    "policy_and_error",
+    "loss_curve",
+    "time_to_accuracy",
+    "grouped_bars",
+]
 
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
 WIDTH = 7.0  # inches: the widest figure the content column shows at full size (700 CSS px)
-STYLE = {"figure.dpi": 100, "font.size": 11, "axes.titlesize": 11, "axes.labelsize": 11,
-         "xtick.labelsize": 10, "ytick.labelsize": 10, "legend.fontsize": 10, "figure.titlesize": 12,
-         "savefig.bbox": "tight"}
+STYLE = {
+    "figure.dpi": 100,
+    "font.size": 11,
+    "axes.titlesize": 11,
+    "axes.labelsize": 11,
+    "xtick.labelsize": 10,
+    "ytick.labelsize": 10,
+    "legend.fontsize": 10,
+    "figure.titlesize": 12,
+    "savefig.bbox": "tight",
+}
 
 
 def use_book_style(retina: bool = True) -> None:
@@ -75,8 +97,17 @@ def slice_mesh(system, axes: tuple[int, int] = (0, 1), fixed=None, points_per_di
     return x1, x2, pts
 
 
-def surface(ax, x1, x2, z, title: str = "", diverging: bool = False, limit=None,
-            axis_labels: tuple[str, str] = ("$x_1$", "$x_2$"), zlabel: str | None = None):
+def surface(
+    ax,
+    x1,
+    x2,
+    z,
+    title: str = "",
+    diverging: bool = False,
+    limit=None,
+    axis_labels: tuple[str, str] = ("$x_1$", "$x_2$"),
+    zlabel: str | None = None,
+):
     """One 3-D surface of ``z`` on the mesh (x1, x2) in the 3-D axes ``ax``, in the book's style.
 
     * ``diverging``: True for an error (white at zero, a symmetric colour scale).
@@ -104,9 +135,18 @@ def surface(ax, x1, x2, z, title: str = "", diverging: bool = False, limit=None,
     return ax
 
 
-def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str = "", zlabels=None,
-             diverging: list[bool] | None = None, axis_labels: tuple[str, str] = ("$x_1$", "$x_2$"),
-             limits: list | None = None, ncols: int = 2):
+def surfaces(
+    x1,
+    x2,
+    fields: list[np.ndarray],
+    titles: list[str],
+    suptitle: str = "",
+    zlabels=None,
+    diverging: list[bool] | None = None,
+    axis_labels: tuple[str, str] = ("$x_1$", "$x_2$"),
+    limits: list | None = None,
+    ncols: int = 2,
+):
     """3-D surfaces of fields on the mesh (x1, x2), as in the paper's figures, ``ncols`` a row.
 
     * ``fields``, ``titles``: one array (any shape with x1.size entries) and one title per panel.
@@ -124,14 +164,21 @@ def surfaces(x1, x2, fields: list[np.ndarray], titles: list[str], suptitle: str 
     for i, (z, title) in enumerate(zip(fields, titles)):
         row, col = divmod(i, ncols)
         shift = ncols - min(ncols, k - row * ncols)  # a short last row is centred (half-panel steps)
-        ax = fig.add_subplot(grid[row, shift + 2 * col:shift + 2 * col + 2], projection="3d")
-        surface(ax, x1, x2, z, title, diverging=bool(diverging and diverging[i]),
-                limit=limits[i] if limits else None, axis_labels=axis_labels,
-                zlabel=zlabels[i] if zlabels else None)
+        ax = fig.add_subplot(grid[row, shift + 2 * col : shift + 2 * col + 2], projection="3d")
+        surface(
+            ax,
+            x1,
+            x2,
+            z,
+            title,
+            diverging=bool(diverging and diverging[i]),
+            limit=limits[i] if limits else None,
+            axis_labels=axis_labels,
+            zlabel=zlabels[i] if zlabels else None,
+        )
     if suptitle:
         fig.suptitle(suptitle)
-    fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.9 if suptitle else 0.95, wspace=0.12,
-                        hspace=0.2)
+    fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.9 if suptitle else 0.95, wspace=0.12, hspace=0.2)
     return fig
 
 
@@ -140,8 +187,14 @@ def _t_label(sol) -> str:
     return r"\infty" if T == math.inf else f"{T:g}"
 
 
-def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = "", axes: tuple[int, int] = (0, 1),
-                          fixed=None, limits: list | None = None):
+def value_policy_residual(
+    sol,
+    points_per_dim: int = 41,
+    suptitle: str = "",
+    axes: tuple[int, int] = (0, 1),
+    fixed=None,
+    limits: list | None = None,
+):
     """V(., 0), mu(., 0) and the squared flow residual E_e^2 (eq. (flow_res)): the paper's Figures 1-3.
 
     Over Omega for a 2-D system; for n > 2 on the plane through Omega spanned by ``axes`` with the other
@@ -149,9 +202,15 @@ def value_policy_residual(sol, points_per_dim: int = 41, suptitle: str = "", axe
     x1, x2, pts = slice_mesh(sol.system, axes, fixed, points_per_dim)
     T = _t_label(sol)
     v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2
-    return surfaces(x1, x2, [v, u, e], [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0)$",
-                                       rf"$E_e(x;\hat V_{{{T}}})^2$"], suptitle,
-                    axis_labels=(f"$x_{axes[0] + 1}$", f"$x_{axes[1] + 1}$"), limits=limits)
+    return surfaces(
+        x1,
+        x2,
+        [v, u, e],
+        [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0)$", rf"$E_e(x;\hat V_{{{T}}})^2$"],
+        suptitle,
+        axis_labels=(f"$x_{axes[0] + 1}$", f"$x_{axes[1] + 1}$"),
+        limits=limits,
+    )
 
 
 def _reference_on(sol, pts, reference, which: str):
@@ -181,9 +240,14 @@ def value_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: str
     x1, x2, pts = _mesh(sol, reference, points_per_dim)
     T = _t_label(sol)
     v = sol.value(pts)
-    return surfaces(x1, x2, [v, v - _reference_on(sol, pts, reference, "value")],
-                    [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat V_{{{T}}}(x,0) - V^\star(x)$"], suptitle,
-                    diverging=[False, True])
+    return surfaces(
+        x1,
+        x2,
+        [v, v - _reference_on(sol, pts, reference, "value")],
+        [rf"$\hat V_{{{T}}}(x,0)$", rf"$\hat V_{{{T}}}(x,0) - V^\star(x)$"],
+        suptitle,
+        diverging=[False, True],
+    )
 
 
 def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: str = ""):
@@ -191,9 +255,14 @@ def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: st
     x1, x2, pts = _mesh(sol, reference, points_per_dim)
     T = _t_label(sol)
     u = sol.policy(pts)[:, 0]
-    return surfaces(x1, x2, [u, u - _reference_on(sol, pts, reference, "policy")],
-                    [rf"$\hat\mu_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0) - \mu^\star(x)$"], suptitle,
-                    diverging=[False, True])
+    return surfaces(
+        x1,
+        x2,
+        [u, u - _reference_on(sol, pts, reference, "policy")],
+        [rf"$\hat\mu_{{{T}}}(x,0)$", rf"$\hat\mu_{{{T}}}(x,0) - \mu^\star(x)$"],
+        suptitle,
+        diverging=[False, True],
+    )
 
 
 def loss_curve(history, title: str = ""):
@@ -253,8 +322,15 @@ def grouped_bars(values: dict, ylabel: str, title: str = "", log: bool = True):
         ax.bar([x for x, y in zip(xs, ys) if y is not None], [y for y in ys if y is not None], width, label=bar)
         for x, y in zip(xs, ys):
             if y is None:
-                ax.annotate("none", (x, 0), xytext=(0, 3), textcoords="offset points", ha="center", fontsize=10,
-                            xycoords=("data", "axes fraction"))
+                ax.annotate(
+                    "none",
+                    (x, 0),
+                    xytext=(0, 3),
+                    textcoords="offset points",
+                    ha="center",
+                    fontsize=10,
+                    xycoords=("data", "axes fraction"),
+                )
     ax.set_xticks(range(len(values)), list(values))
     if log:
         ax.set_yscale("log")

@@ -26,6 +26,7 @@ O(|x|^3), so the truncation error is O(|x(t_inf)|^3); ``|x(t_inf)|`` is checked 
 Nothing here depends on the PINN code (:mod:`pinnhjb.pinn`, ``training``, ``solver``, ``metrics``):
 only numpy/scipy and the system's callables ``f, g, Q, R``.
 """
+
 from __future__ import annotations
 
 import copy
@@ -37,7 +38,6 @@ import warnings
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import scipy
@@ -96,8 +96,9 @@ class _Problem:
             else:
                 P = np.asarray(terminal_cost, dtype=float)
                 if P.shape != (self.n, self.n) or not np.all(np.isfinite(P)):
-                    raise ValueError(f"terminal_cost as a matrix must be a finite ({self.n}, {self.n}) array; "
-                                     f"got shape {P.shape}")
+                    raise ValueError(
+                        f"terminal_cost as a matrix must be a finite ({self.n}, {self.n}) array; got shape {P.shape}"
+                    )
                 self.P_T = (P + P.T) / 2  # phi(x) = x'P_T x
 
     # ------------------------------------------------------------------ linearization / LQR guess
@@ -115,9 +116,12 @@ class _Problem:
             if np.all(np.linalg.eigvals(A).real < 0):  # B may be uncontrollable but A stable
                 P = sla.solve_continuous_lyapunov(A.T, -Ql)
         if P is None or not np.all(np.isfinite(P)):
-            warnings.warn(f"system '{s.name}': no stabilizing Riccati solution for the linearization at 0; "
-                          "the infinite-horizon tail uses phi = 0 and the LQR initial guess is the open loop",
-                          RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"system '{s.name}': no stabilizing Riccati solution for the linearization at 0; "
+                "the infinite-horizon tail uses phi = 0 and the LQR initial guess is the open loop",
+                RuntimeWarning,
+                stacklevel=3,
+            )
             P = np.zeros((n, n))
         self.A, self.B, self.Q_lin = A, B, Ql
         self.P_lqr = (P + P.T) / 2
@@ -165,10 +169,10 @@ class _Problem:
             y = np.hstack([sol.y, np.vstack([x_extra, 2 * self.P_lqr @ x_extra, c_extra])])
         dx = self._lin_flow(t, x0 - np.asarray(prev["x0"], dtype=float))
         y[:n] += dx
-        y[n: 2 * n] += 2 * self.P_lqr @ dx
+        y[n : 2 * n] += 2 * self.P_lqr @ dx
         return t, y
 
-    def extended(self, T: float) -> "_Problem":
+    def extended(self, T: float) -> _Problem:
         """The same infinite-horizon truncation with a longer ``t_inf``."""
         other = copy.copy(self)
         other.T = float(T)
@@ -205,11 +209,11 @@ class _Problem:
         jac = np.zeros((2 * n + 1, 2 * n + 1, k))
         for i in range(n):  # rows of xdot = dHmin/dlam and lamdot = -dHmin/dx
             jac[i, :n] = _grad(gl[:, i], x).detach().numpy().T
-            jac[i, n: 2 * n] = _grad(gl[:, i], lam).detach().numpy().T
+            jac[i, n : 2 * n] = _grad(gl[:, i], lam).detach().numpy().T
             jac[n + i, :n] = -_grad(gx[:, i], x).detach().numpy().T
-            jac[n + i, n: 2 * n] = -_grad(gx[:, i], lam).detach().numpy().T
+            jac[n + i, n : 2 * n] = -_grad(gx[:, i], lam).detach().numpy().T
         jac[2 * n, :n] = _grad(rate, x).detach().numpy().T
-        jac[2 * n, n: 2 * n] = _grad(rate, lam).detach().numpy().T
+        jac[2 * n, n : 2 * n] = _grad(rate, lam).detach().numpy().T
         return jac
 
     # ------------------------------------------------------------------ terminal cost
@@ -227,22 +231,21 @@ class _Problem:
     def phi_hess(self, xT: np.ndarray) -> np.ndarray:
         if self.phi is None:
             return 2 * self.P_T
-        return torch.autograd.functional.hessian(lambda v: self.phi(v[None])[0],
-                                                 torch.as_tensor(xT, dtype=_DT)).numpy()
+        return torch.autograd.functional.hessian(lambda v: self.phi(v[None])[0], torch.as_tensor(xT, dtype=_DT)).numpy()
 
     def bc(self, x0):
         n = self.n
 
         def bc(ya, yb):
-            return np.concatenate([ya[:n] - x0, yb[n: 2 * n] - self.phi_grad(yb[:n]), ya[2 * n: 2 * n + 1]])
+            return np.concatenate([ya[:n] - x0, yb[n : 2 * n] - self.phi_grad(yb[:n]), ya[2 * n : 2 * n + 1]])
 
         def bc_jac(ya, yb):
             d = 2 * n + 1
             Ja, Jb = np.zeros((d, d)), np.zeros((d, d))
             Ja[:n, :n] = np.eye(n)
             Ja[2 * n, 2 * n] = 1.0
-            Jb[n: 2 * n, n: 2 * n] = np.eye(n)
-            Jb[n: 2 * n, :n] = -self.phi_hess(yb[:n])
+            Jb[n : 2 * n, n : 2 * n] = np.eye(n)
+            Jb[n : 2 * n, :n] = -self.phi_hess(yb[:n])
             return Ja, Jb
 
         return bc, bc_jac
@@ -252,8 +255,9 @@ class _Problem:
         bc, bc_jac = self.bc(x0)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # overflow in a diverging Newton step
-            sol = solve_bvp(self.rhs, bc, t, y, fun_jac=self.rhs_jac, bc_jac=bc_jac, tol=tol,
-                            bc_tol=tol, max_nodes=max_nodes)
+            sol = solve_bvp(
+                self.rhs, bc, t, y, fun_jac=self.rhs_jac, bc_jac=bc_jac, tol=tol, bc_tol=tol, max_nodes=max_nodes
+            )
         return sol
 
 
@@ -274,7 +278,7 @@ def _result(prob: _Problem, x0: np.ndarray, sol, tol: float, tail_tol: float, in
     y0, yT = sol.y[:, 0], sol.y[:, -1]
     xT = yT[:n]
     value = float(yT[2 * n]) + prob.phi_value(xT)
-    lam0 = y0[n: 2 * n].copy()
+    lam0 = y0[n : 2 * n].copy()
     g0 = prob.system.g(torch.as_tensor(x0, dtype=_DT)[None])[0].detach().numpy()
     policy = -0.5 * prob.Rinv @ g0.T @ lam0
     residual = float(np.max(sol.rms_residuals)) if sol.rms_residuals is not None and sol.rms_residuals.size else np.inf
@@ -283,11 +287,28 @@ def _result(prob: _Problem, x0: np.ndarray, sol, tol: float, tail_tol: float, in
     # Hmin is constant along an extremal; for the infinite-horizon problem it is ~0 (the HJB (4)).
     hmin = float(prob._parts(*(torch.as_tensor(v, dtype=_DT)[None] for v in (x0, lam0)))[0][0])
     finite = np.all(np.isfinite([value, *lam0, *policy]))
-    converged = bool(sol.status == 0 and finite and residual <= tol * (1 + 1e-9) and bc_res <= 10 * tol
-                     and (not infinite or tail <= tail_tol))
-    return {"x0": x0, "value": value, "gradient": lam0, "policy": policy, "converged": converged,
-            "status": int(sol.status), "message": sol.message, "residual": residual, "bc_residual": bc_res,
-            "tail_norm": tail, "hamiltonian": hmin, "nodes": int(sol.x.size), "solution": sol}
+    converged = bool(
+        sol.status == 0
+        and finite
+        and residual <= tol * (1 + 1e-9)
+        and bc_res <= 10 * tol
+        and (not infinite or tail <= tail_tol)
+    )
+    return {
+        "x0": x0,
+        "value": value,
+        "gradient": lam0,
+        "policy": policy,
+        "converged": converged,
+        "status": int(sol.status),
+        "message": sol.message,
+        "residual": residual,
+        "bc_residual": bc_res,
+        "tail_norm": tail,
+        "hamiltonian": hmin,
+        "nodes": int(sol.x.size),
+        "solution": sol,
+    }
 
 
 def _solve(prob: _Problem, x0, guess, tol, max_nodes, tail_tol, infinite) -> dict:
@@ -314,9 +335,19 @@ def _solve(prob: _Problem, x0, guess, tol, max_nodes, tail_tol, infinite) -> dic
     return prev
 
 
-def solve_point(system, x0, horizon: float = math.inf, terminal_cost=None, t_inf: float = 25.0,
-                tol: float = 1e-8, guess: Optional[dict] = None, max_nodes: int = 100_000,
-                tail_tol: float = 1e-3, max_extensions: int = 3, _problem: Optional[_Problem] = None) -> dict:
+def solve_point(
+    system,
+    x0,
+    horizon: float = math.inf,
+    terminal_cost=None,
+    t_inf: float = 25.0,
+    tol: float = 1e-8,
+    guess: dict | None = None,
+    max_nodes: int = 100_000,
+    tail_tol: float = 1e-3,
+    max_extensions: int = 3,
+    _problem: _Problem | None = None,
+) -> dict:
     """Optimal value, gradient and policy at one initial state by the minimum principle.
 
     Parameters
@@ -355,9 +386,12 @@ def solve_point(system, x0, horizon: float = math.inf, terminal_cost=None, t_inf
     res["t_inf"] = prob.T if infinite else None
     res["_problem"] = prob
     if not res["converged"]:
-        warnings.warn(f"reference BVP did not converge at x0={x0.tolist()}: status {res['status']} "
-                      f"({res['message']}), residual {res['residual']:.2e}, tail {res['tail_norm']:.2e}",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"reference BVP did not converge at x0={x0.tolist()}: status {res['status']} "
+            f"({res['message']}), residual {res['residual']:.2e}, tail {res['tail_norm']:.2e}",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     return res
 
 
@@ -377,7 +411,7 @@ class ReferenceGrid:
     max_bvp_residual: np.ndarray
     wall_time: float
     system: dict
-    status: Optional[np.ndarray] = None
+    status: np.ndarray | None = None
     info: dict = field(default_factory=dict)
 
     _ARRAYS = ("points", "value", "gradient", "policy", "converged", "max_bvp_residual", "status")
@@ -385,10 +419,14 @@ class ReferenceGrid:
     def save(self, path) -> None:
         """Write a .npz with every array and a JSON ``metadata`` string (system spec, horizon,
         tolerances, library versions, wall time, creation time)."""
-        meta = {"system": self.system, "horizon": "inf" if math.isinf(self.horizon) else float(self.horizon),
-                "wall_time": float(self.wall_time), "info": self.info,
-                "versions": {"numpy": np.__version__, "scipy": scipy.__version__, "torch": torch.__version__},
-                "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        meta = {
+            "system": self.system,
+            "horizon": "inf" if math.isinf(self.horizon) else float(self.horizon),
+            "wall_time": float(self.wall_time),
+            "info": self.info,
+            "versions": {"numpy": np.__version__, "scipy": scipy.__version__, "torch": torch.__version__},
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        }
         arrays = {k: np.asarray(getattr(self, k)) for k in self._ARRAYS if getattr(self, k) is not None}
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -398,7 +436,7 @@ class ReferenceGrid:
         os.replace(tmp, path)
 
     @classmethod
-    def load(cls, path) -> "ReferenceGrid":
+    def load(cls, path) -> ReferenceGrid:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["metadata"]))
             arrays = {k: data[k] for k in cls._ARRAYS if k in data.files}
@@ -407,8 +445,16 @@ class ReferenceGrid:
         return cls(horizon=horizon, wall_time=float(meta["wall_time"]), system=meta["system"], info=info, **arrays)
 
 
-def reference_grid(system, points_per_dim: int = 41, horizon: float = math.inf, terminal_cost=None, box=None,
-                   progress: bool = True, strict: bool = False, **kw) -> ReferenceGrid:
+def reference_grid(
+    system,
+    points_per_dim: int = 41,
+    horizon: float = math.inf,
+    terminal_cost=None,
+    box=None,
+    progress: bool = True,
+    strict: bool = False,
+    **kw,
+) -> ReferenceGrid:
     """:func:`solve_point` on the tensor-product grid ``system.grid(points_per_dim, box=box)`` of Omega.
 
     Points are swept by distance from the origin; each is warm-started from its nearest solved
@@ -428,7 +474,7 @@ def reference_grid(system, points_per_dim: int = 41, horizon: float = math.inf, 
     scale = np.maximum(np.abs(box_).max(axis=1), 1e-12)
     order = np.argsort(np.linalg.norm(pts / scale, axis=1), kind="stable")
     shape = (points_per_dim,) * n
-    strides = np.array([int(np.prod(shape[i + 1:])) for i in range(n)])
+    strides = np.array([int(np.prod(shape[i + 1 :])) for i in range(n)])
     value, status = np.full(N, np.nan), np.full(N, -1, dtype=int)
     grad, pol = np.full((N, n), np.nan), np.full((N, system.m), np.nan)
     conv, resid = np.zeros(N, dtype=bool), np.full(N, np.nan)
@@ -437,8 +483,12 @@ def reference_grid(system, points_per_dim: int = 41, horizon: float = math.inf, 
         warnings.simplefilter("ignore", RuntimeWarning)
         for k in tqdm(order, desc=f"reference {system.name}", disable=not progress, leave=False):
             idx = np.array(np.unravel_index(k, shape))
-            nbrs = [int(k + s * strides[d]) for d in range(n) for s in (-1, 1)
-                    if 0 <= idx[d] + s < points_per_dim and int(k + s * strides[d]) in solved]
+            nbrs = [
+                int(k + s * strides[d])
+                for d in range(n)
+                for s in (-1, 1)
+                if 0 <= idx[d] + s < points_per_dim and int(k + s * strides[d]) in solved
+            ]
             guess = solved[min(nbrs, key=lambda j: np.linalg.norm(pts[j] - pts[k]))] if nbrs else None
             res = solve_point(system, pts[k], horizon=horizon, guess=guess, _problem=prob, **kw)
             status[k], resid[k] = res["status"], res["residual"]
@@ -454,12 +504,28 @@ def reference_grid(system, points_per_dim: int = 41, horizon: float = math.inf, 
         if strict:
             raise RuntimeError(msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=2)
-    info = {"points_per_dim": points_per_dim, "box": np.asarray(box_).tolist(),
-            "tol": kw.get("tol", 1e-8), "t_inf": prob.T if math.isinf(horizon) else None,
-            "tail_tol": kw.get("tail_tol", 1e-3), "max_nodes": kw.get("max_nodes", 100_000),
-            "terminal_cost": None if terminal_cost is None else ("callable" if callable(terminal_cost)
-                                                                  else np.asarray(terminal_cost).tolist()),
-            "method": "Pontryagin BVP, scipy.integrate.solve_bvp, autograd Jacobians"}
-    return ReferenceGrid(points=pts, value=value, gradient=grad, policy=pol, horizon=float(horizon),
-                         converged=conv, max_bvp_residual=resid, wall_time=wall, system=system.spec(),
-                         status=status, info=info)
+    info = {
+        "points_per_dim": points_per_dim,
+        "box": np.asarray(box_).tolist(),
+        "tol": kw.get("tol", 1e-8),
+        "t_inf": prob.T if math.isinf(horizon) else None,
+        "tail_tol": kw.get("tail_tol", 1e-3),
+        "max_nodes": kw.get("max_nodes", 100_000),
+        "terminal_cost": None
+        if terminal_cost is None
+        else ("callable" if callable(terminal_cost) else np.asarray(terminal_cost).tolist()),
+        "method": "Pontryagin BVP, scipy.integrate.solve_bvp, autograd Jacobians",
+    }
+    return ReferenceGrid(
+        points=pts,
+        value=value,
+        gradient=grad,
+        policy=pol,
+        horizon=float(horizon),
+        converged=conv,
+        max_bvp_residual=resid,
+        wall_time=wall,
+        system=system.spec(),
+        status=status,
+        info=info,
+    )

@@ -12,7 +12,7 @@ machine runs them. It must therefore say what the text around it claims and no m
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 __all__ = ["num", "table", "Table"]
 
@@ -51,8 +51,10 @@ class Table:
     def _repr_markdown_(self) -> str:
         esc = lambda s: s.replace("|", "\\|")  # noqa: E731
         rule = {"l": ":--", "c": ":-:", "r": "--:"}
-        lines = ["| " + " | ".join(esc(h) for h in self.header) + " |",
-                 "|" + "|".join(rule[a] for a in self.align) + "|"]
+        lines = [
+            "| " + " | ".join(esc(h) for h in self.header) + " |",
+            "|" + "|".join(rule[a] for a in self.align) + "|",
+        ]
         lines += ["| " + " | ".join(esc(c) for c in row) + " |" for row in self.rows]
         return "\n".join(lines)
 

@@ -15,9 +15,11 @@ derivatives enter it (:meth:`Residual.pde`). Equations are cited by the book's l
 A new form is one new class plus a registration line: subclass one of these (often only :meth:`Residual.pde`
 changes) and decorate it with :func:`register`; then ``train_finite_horizon(..., residual="its name")``.
 """
+
 from __future__ import annotations
 
-from typing import Callable, ClassVar
+from collections.abc import Callable
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -28,10 +30,17 @@ from .pinn import gradient, value_and_gradients
 
 Tensor = torch.Tensor
 
-__all__ = ["Residual", "FiniteHorizonHJB", "SoftFiniteHorizonHJB", "SteadyStateHJB", "RESIDUALS", "register",
-           "get_residual"]
+__all__ = [
+    "Residual",
+    "FiniteHorizonHJB",
+    "SoftFiniteHorizonHJB",
+    "SteadyStateHJB",
+    "RESIDUALS",
+    "register",
+    "get_residual",
+]
 
-RESIDUALS: dict[str, type["Residual"]] = {}
+RESIDUALS: dict[str, type[Residual]] = {}
 
 _CHUNK = 16384  # points per autograd pass in :meth:`SteadyStateHJB.field`
 
@@ -54,7 +63,7 @@ def register(name: str):
     return decorate
 
 
-def get_residual(form: str | type["Residual"]) -> type["Residual"]:
+def get_residual(form: str | type[Residual]) -> type[Residual]:
     """The residual class registered under a name (a class is returned as it is).
 
     * ``form``: a registered name such as ``"hjbt"``, or a :class:`Residual` subclass.
@@ -134,8 +143,15 @@ class FiniteHorizonHJB(Residual):
 
     ansatz = True
 
-    def pde(self, x: Tensor, grad_x: Tensor, dt: Tensor, fx: Tensor | None = None, gx: Tensor | None = None,
-            qx: Tensor | None = None) -> Tensor:
+    def pde(
+        self,
+        x: Tensor,
+        grad_x: Tensor,
+        dt: Tensor,
+        fx: Tensor | None = None,
+        gx: Tensor | None = None,
+        qx: Tensor | None = None,
+    ) -> Tensor:
         """F_e = dv/dt + min_u H(x, u, grad_x v) (eq-fe), per point (N,).
 
         * ``x``: states (N, n).
@@ -167,8 +183,14 @@ class FiniteHorizonHJB(Residual):
         gx = gx + flow["dphi"]
         return self.pde(x, gx, gt, flow["fx"], flow["gx"], flow["qx"])
 
-    def loss(self, flow: dict, t: Tensor, boundary: dict | None = None, t_origin: Tensor | None = None,
-             shared_times: tuple | None = None) -> Tensor:
+    def loss(
+        self,
+        flow: dict,
+        t: Tensor,
+        boundary: dict | None = None,
+        t_origin: Tensor | None = None,
+        shared_times: tuple | None = None,
+    ) -> Tensor:
         """MSE_e, the whole of eq-mse under the ansatz: mean F_e^2 on one batch.
 
         * ``flow``, ``t``, ``shared_times``: as in :meth:`residual`.
@@ -260,8 +282,14 @@ class SoftFiniteHorizonHJB(FiniteHorizonHJB):
         zero = torch.zeros(t_origin.shape[0], like.shape[1], dtype=like.dtype, device=like.device)
         return self.model.raw(zero, t_origin)
 
-    def loss(self, flow: dict, t: Tensor, boundary: dict | None = None, t_origin: Tensor | None = None,
-             shared_times: tuple | None = None) -> Tensor:
+    def loss(
+        self,
+        flow: dict,
+        t: Tensor,
+        boundary: dict | None = None,
+        t_origin: Tensor | None = None,
+        shared_times: tuple | None = None,
+    ) -> Tensor:
         """MSE_e + MSE_b + MSE_in (eq-mse) on one batch.
 
         * ``flow``, ``t``: the flow points, as in :meth:`residual`.
@@ -295,8 +323,9 @@ class SteadyStateHJB(Residual):
 
     time_dependent = False
 
-    def pde(self, x: Tensor, grad_x: Tensor, fx: Tensor | None = None, gx: Tensor | None = None,
-            qx: Tensor | None = None) -> Tensor:
+    def pde(
+        self, x: Tensor, grad_x: Tensor, fx: Tensor | None = None, gx: Tensor | None = None, qx: Tensor | None = None
+    ) -> Tensor:
         """E_e = min_u H(x, u, grad V) (eq-ee), per point (N,).
 
         * ``x``: states (N, n).
@@ -376,7 +405,8 @@ class SteadyStateHJB(Residual):
 
         def jacobian(theta, x, fx, gx, qx):
             dz = torch.diag(model.scale_x_derivative(x)).expand(x.shape[0], n, n)
-            return residual_jacobian(model.net, theta, model.scale_x(x), dz,
-                                     lambda out, dout: self.pde(x, dout, fx, gx, qx))
+            return residual_jacobian(
+                model.net, theta, model.scale_x(x), dz, lambda out, dout: self.pde(x, dout, fx, gx, qx)
+            )
 
         return jacobian

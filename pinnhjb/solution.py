@@ -11,6 +11,7 @@ from a checkpoint), and passed in when the result is built; nothing in the packa
 afterwards: a changed result is a new one, made with :func:`dataclasses.replace` (as ``solve_until`` does to
 record its ``tol``). A :class:`Stage` is frozen.
 """
+
 from __future__ import annotations
 
 import math
@@ -54,6 +55,7 @@ class _ValueSolution:
     def _value_fn(self, t: float = 0.0):
         def fn(x: Tensor) -> Tensor:
             return self._model_value(x.to(self.device, self.dtype), t).to(x.device, x.dtype)
+
         return fn
 
     def _prepare(self, x):
@@ -97,8 +99,9 @@ class _ValueSolution:
 
     def closed_loop(self, x0, t_final: float = 20.0, dt: float = 0.01) -> _metrics.ClosedLoopResult:
         """Simulate the learned policy mu(., 0) from initial states x0 (see :func:`pinnhjb.metrics.closed_loop`)."""
-        return _metrics.closed_loop(self.system, _metrics.policy_of(self.system, self._value_fn(0.0)), x0,
-                                    t_final=t_final, dt=dt)
+        return _metrics.closed_loop(
+            self.system, _metrics.policy_of(self.system, self._value_fn(0.0)), x0, t_final=t_final, dt=dt
+        )
 
 
 @dataclass(frozen=True)
@@ -200,7 +203,7 @@ class FiniteHorizonSolution(_ValueSolution):
                 return stage.model(x, max(t - offset, 0.0))
         raise AssertionError("unreachable")
 
-    def truncated(self, k: int) -> "FiniteHorizonSolution":
+    def truncated(self, k: int) -> FiniteHorizonSolution:
         """The solution after the first ``k`` stages (horizon T_k), sharing the trained networks."""
         if not 1 <= k <= len(self.stages):
             raise ValueError(f"k must be in 1..{len(self.stages)}; got {k}")
@@ -210,9 +213,17 @@ class FiniteHorizonSolution(_ValueSolution):
         """One row per stage: horizon reached, wall time, final loss and the stage's metrics; after
         ``solve_until`` also ``converged`` (E <= tol at that stage: False in the last row when it stopped at
         ``max_horizon`` short of ``tol``)."""
-        rows = [{"stage": i + 1, "horizon": s.end, "wall_time": s.history.wall_time,
-                 "final_loss": s.history.final_loss, "stop_reason": s.history.stop_reason, **s.metrics}
-                for i, s in enumerate(self.stages)]
+        rows = [
+            {
+                "stage": i + 1,
+                "horizon": s.end,
+                "wall_time": s.history.wall_time,
+                "final_loss": s.history.final_loss,
+                "stop_reason": s.history.stop_reason,
+                **s.metrics,
+            }
+            for i, s in enumerate(self.stages)
+        ]
         if self.tol is not None:
             for row in rows:
                 row["converged"] = bool(row.get("E", math.inf) <= self.tol)
@@ -220,8 +231,10 @@ class FiniteHorizonSolution(_ValueSolution):
 
     def __repr__(self):
         e = self.metrics.get("E")
-        return (f"FiniteHorizonSolution(system={self.system.name!r}, horizons={self.horizons}, "
-                f"E={e if e is None else f'{e:.3e}'}, wall_time={self.wall_time:.1f}s)")
+        return (
+            f"FiniteHorizonSolution(system={self.system.name!r}, horizons={self.horizons}, "
+            f"E={e if e is None else f'{e:.3e}'}, wall_time={self.wall_time:.1f}s)"
+        )
 
 
 @dataclass(eq=False, frozen=True)
@@ -267,5 +280,7 @@ class SteadyStateSolution(_ValueSolution):
 
     def __repr__(self):
         e = self.metrics.get("E")
-        return (f"SteadyStateSolution(system={self.system.name!r}, E={e if e is None else f'{e:.3e}'}, "
-                f"wall_time={self.wall_time:.1f}s)")
+        return (
+            f"SteadyStateSolution(system={self.system.name!r}, E={e if e is None else f'{e:.3e}'}, "
+            f"wall_time={self.wall_time:.1f}s)"
+        )

@@ -16,20 +16,27 @@ default E and the errors against V* on ``config.eval_points_per_dim`` points per
 (:meth:`~pinnhjb.solution.FiniteHorizonSolution.evaluate`); the ``evaluate=`` argument replaces that with any
 function of the result (e.g. a benchmark's own timed measure on its own points, or ``lambda sol: {}`` to skip it).
 """
+
 from __future__ import annotations
 
 import math
 import numbers
 import warnings
+from collections.abc import Callable
 from dataclasses import replace
-from typing import Callable
 
 import numpy as np
 import torch
 
 from .config import PAPER_SETTINGS, TrainConfig
-from .pinn import (CallableTerminalCost, FiniteHorizonValue, QuadraticTerminalCost, SteadyStateValue,
-                   ValueTerminalCost, ZeroTerminalCost)
+from .pinn import (
+    CallableTerminalCost,
+    FiniteHorizonValue,
+    QuadraticTerminalCost,
+    SteadyStateValue,
+    ValueTerminalCost,
+    ZeroTerminalCost,
+)
 from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
 from .training import DTYPES, resolve_device, train_finite_horizon, train_steady_state
 
@@ -40,12 +47,18 @@ MAX_STAGES_PER_CALL = 10000  # one extend() call; solve_until extends one stage 
 
 def _number(value, name: str, *, positive: bool = True, allow_inf: bool = False, expected: str = "") -> float:
     """A real number (Python, numpy or a one-element tensor) as a float, or an error naming ``name``."""
-    if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.dtype.is_complex \
-            and value.dtype != torch.bool:
+    if (
+        isinstance(value, torch.Tensor)
+        and value.numel() == 1
+        and not value.dtype.is_complex
+        and value.dtype != torch.bool
+    ):
         value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{name} must be {expected or 'a positive finite number'}; got {value!r} of type "
-                         f"{type(value).__name__} (not a number)")
+        raise ValueError(
+            f"{name} must be {expected or 'a positive finite number'}; got {value!r} of type "
+            f"{type(value).__name__} (not a number)"
+        )
     value = float(value)
     if math.isnan(value) or (math.isinf(value) and not allow_inf) or (positive and not value > 0):
         expected = expected or ("a positive number (inf allowed)" if allow_inf else "a positive finite number")
@@ -67,8 +80,10 @@ def _keep(exc: BaseException, solution) -> None:
         return
     try:
         exc.partial_solution = solution
-        exc.add_note(f"the {len(solution.stages)} stage(s) trained before this error (up to T={solution.horizon:g}) "
-                     f"are in this exception's .partial_solution (save them with pinnhjb.save)")
+        exc.add_note(
+            f"the {len(solution.stages)} stage(s) trained before this error (up to T={solution.horizon:g}) "
+            f"are in this exception's .partial_solution (save them with pinnhjb.save)"
+        )
     except (AttributeError, TypeError):  # an exception type that takes no attributes
         pass
 
@@ -79,14 +94,17 @@ def make_terminal_cost(terminal_cost, n: int | None = None) -> torch.nn.Module:
         return ZeroTerminalCost()
     if isinstance(terminal_cost, torch.nn.Module):
         return terminal_cost
-    if isinstance(terminal_cost, (np.ndarray, list, tuple)) or (isinstance(terminal_cost, torch.Tensor)
-                                                                and terminal_cost.ndim == 2):
+    if isinstance(terminal_cost, (np.ndarray, list, tuple)) or (
+        isinstance(terminal_cost, torch.Tensor) and terminal_cost.ndim == 2
+    ):
         try:
-            P = np.asarray(terminal_cost.cpu() if isinstance(terminal_cost, torch.Tensor) else terminal_cost,
-                           dtype=float)
+            P = np.asarray(
+                terminal_cost.cpu() if isinstance(terminal_cost, torch.Tensor) else terminal_cost, dtype=float
+            )
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"terminal_cost as a matrix P (phi = x'Px) must hold numbers; got {terminal_cost!r}") \
-                from exc
+            raise ValueError(
+                f"terminal_cost as a matrix P (phi = x'Px) must hold numbers; got {terminal_cost!r}"
+            ) from exc
         if n is not None and P.shape != (n, n):
             raise ValueError(f"terminal_cost as a matrix P (phi = x'Px) must be ({n}, {n}); got shape {P.shape}")
         if not np.all(np.isfinite(P)):
@@ -103,10 +121,12 @@ def _config(config, system) -> TrainConfig:
     if isinstance(config, str):
         key = system.builder or system.name
         if config == "paper" and key not in PAPER_SETTINGS:
-            raise ValueError(f"config='paper' is the paper's Section 6 recipe, whose network, learning rate and "
-                             f"threshold are set per example ({sorted(PAPER_SETTINGS)}); system '{system.name}' is "
-                             f"not one of them: use config='default' (ours), or borrow an example's settings with "
-                             f"config=TrainConfig.preset('paper', system='pendulum')")
+            raise ValueError(
+                f"config='paper' is the paper's Section 6 recipe, whose network, learning rate and "
+                f"threshold are set per example ({sorted(PAPER_SETTINGS)}); system '{system.name}' is "
+                f"not one of them: use config='default' (ours), or borrow an example's settings with "
+                f"config=TrainConfig.preset('paper', system='pendulum')"
+            )
         return TrainConfig.preset(config, system=key)
     if isinstance(config, dict):
         return TrainConfig(**config)
@@ -114,15 +134,23 @@ def _config(config, system) -> TrainConfig:
 
 
 class _Solver:
-    def __init__(self, system, config="default", seed: int = 0, device=None, progress: bool = True,
-                 evaluate: Callable[..., dict] | None = None):
+    def __init__(
+        self,
+        system,
+        config="default",
+        seed: int = 0,
+        device=None,
+        progress: bool = True,
+        evaluate: Callable[..., dict] | None = None,
+    ):
         from .systems import ControlAffineSystem
 
         if not isinstance(system, ControlAffineSystem):
             raise TypeError(f"system must be a ControlAffineSystem (see pinnhjb.systems); got {type(system).__name__}")
         if evaluate is not None and not callable(evaluate):
-            raise TypeError(f"evaluate must be a callable (a solution -> a dict of metrics) or None; got "
-                            f"{type(evaluate).__name__}")
+            raise TypeError(
+                f"evaluate must be a callable (a solution -> a dict of metrics) or None; got {type(evaluate).__name__}"
+            )
         self.system = system
         self.config = _config(config, system)
         self.seed = _seed(seed)
@@ -153,9 +181,12 @@ class _Solver:
         """Warn when a trained stage is no better than V = 0 (E at least E of V = 0 on the same points)."""
         E, E_zero = metrics.get("E"), metrics.get("E_zero")
         if E is not None and E_zero is not None and not E < E_zero:
-            warnings.warn(f"{what}: E = {E:.3e} is no better than E of V = 0 ({E_zero:.3e}): the network learned "
-                          f"nothing useful (saturated? check the scale of Q and R, the horizon, lr or lm_damping)",
-                          RuntimeWarning, stacklevel=4)
+            warnings.warn(
+                f"{what}: E = {E:.3e} is no better than E of V = 0 ({E_zero:.3e}): the network learned "
+                f"nothing useful (saturated? check the scale of Q and R, the horizon, lr or lm_damping)",
+                RuntimeWarning,
+                stacklevel=4,
+            )
 
 
 class FiniteHorizonSolver(_Solver):
@@ -170,13 +201,20 @@ class FiniteHorizonSolver(_Solver):
       E and the errors on ``config.eval_points_per_dim`` points per axis (see :meth:`evaluate`).
     """
 
-    def _train_stage(self, length: float, start: float, terminal, init: FiniteHorizonValue | None,
-                     index: int) -> Stage:
+    def _train_stage(self, length: float, start: float, terminal, init: FiniteHorizonValue | None, index: int) -> Stage:
         cfg = self.config
         seed = self.seed + index
         torch.manual_seed(seed)
-        model = FiniteHorizonValue(self.system.n, length, self.system.train_domain, terminal, width=cfg.width,
-                                   depth=cfg.depth, activation=cfg.activation, ansatz=cfg.ansatz)
+        model = FiniteHorizonValue(
+            self.system.n,
+            length,
+            self.system.train_domain,
+            terminal,
+            width=cfg.width,
+            depth=cfg.depth,
+            activation=cfg.activation,
+            ansatz=cfg.ansatz,
+        )
         model = model.to(device=self.device, dtype=self.dtype)
         if init is not None and cfg.warm_start:
             model.net.load_state_dict(init.net.state_dict())
@@ -195,8 +233,9 @@ class FiniteHorizonSolver(_Solver):
             _keep(exc, trained)  # the stage trained: keep it even if its evaluation fails
             raise
         sol = FiniteHorizonSolution(self.system, self.config, [*done, replace(stage, metrics=metrics)], terminal_spec)
-        self._check_against_zero(metrics, f"stage {len(sol.stages)} ({self.system.name} "
-                                          f"T={stage.start:g}->{stage.end:g})")
+        self._check_against_zero(
+            metrics, f"stage {len(sol.stages)} ({self.system.name} T={stage.start:g}->{stage.end:g})"
+        )
         return sol
 
     def solve(self, horizon: float, terminal_cost=None) -> FiniteHorizonSolution:
@@ -206,8 +245,13 @@ class FiniteHorizonSolver(_Solver):
         stage = self._train_stage(horizon, 0.0, phi.to(self.device, self.dtype), None, 0)
         return self._evaluated([], stage, phi.spec())
 
-    def extend(self, solution: FiniteHorizonSolution, to: float, step: float | None = None,
-               callback: Callable[[FiniteHorizonSolution], None] | None = None) -> FiniteHorizonSolution:
+    def extend(
+        self,
+        solution: FiniteHorizonSolution,
+        to: float,
+        step: float | None = None,
+        callback: Callable[[FiniteHorizonSolution], None] | None = None,
+    ) -> FiniteHorizonSolution:
         """Theorem 2: extend ``solution`` from T to ``to`` in increments of ``step`` (default: one increment).
 
         Each new stage trains V' only on [0, step] with terminal cost V_T(., 0) (the previous stage's
@@ -218,18 +262,22 @@ class FiniteHorizonSolver(_Solver):
         if not isinstance(solution, FiniteHorizonSolution):
             raise TypeError(f"extend needs a FiniteHorizonSolution; got {type(solution).__name__}")
         if solution.system is not self.system and solution.system.spec() != self.system.spec():
-            raise ValueError(f"solution was trained on system {solution.system.spec()}, this solver has "
-                             f"{self.system.spec()}")
+            raise ValueError(
+                f"solution was trained on system {solution.system.spec()}, this solver has {self.system.spec()}"
+            )
         T = solution.horizon
-        to = _number(to, "to (the extension target)", expected=f"a finite number that must exceed the current "
-                                                                f"horizon T={T:g}")
+        to = _number(
+            to, "to (the extension target)", expected=f"a finite number that must exceed the current horizon T={T:g}"
+        )
         if not to > T:
             raise ValueError(f"extension target to={to:g} must exceed the current horizon T={T:g}")
         step = (to - T) if step is None else _number(step, "step")
         count = math.ceil((to - T) / step - 1e-9)
         if count > MAX_STAGES_PER_CALL:
-            raise ValueError(f"step={step:g} from T={T:g} to {to:g} would train {count} stages, more than "
-                             f"MAX_STAGES_PER_CALL={MAX_STAGES_PER_CALL}; choose a larger step")
+            raise ValueError(
+                f"step={step:g} from T={T:g} to {to:g} would train {count} stages, more than "
+                f"MAX_STAGES_PER_CALL={MAX_STAGES_PER_CALL}; choose a larger step"
+            )
         if solution.device != self.device or solution.dtype != self.dtype:
             for s in solution.stages:  # as nn.Module.to did through the nested chain before
                 s.model.to(self.device, self.dtype)
@@ -248,15 +296,24 @@ class FiniteHorizonSolver(_Solver):
                     callback(current)
         except KeyboardInterrupt:
             stages = current.stages  # the stages trained and evaluated before the interrupt
-            warnings.warn(f"interrupted: returning the {len(stages)} completed stage(s) up to T={stages[-1].end:g}")
+            warnings.warn(
+                f"interrupted: returning the {len(stages)} completed stage(s) up to T={stages[-1].end:g}", stacklevel=2
+            )
             return FiniteHorizonSolution(self.system, self.config, stages, solution.terminal_spec, interrupted=True)
         except Exception as exc:
             _keep(exc, current if len(current.stages) > len(solution.stages) else None)
             raise
         return current
 
-    def solve_until(self, tol: float, step: float, first_horizon: float | None = None, max_horizon: float = 20.0,
-                    terminal_cost=None, callback=None) -> FiniteHorizonSolution:
+    def solve_until(
+        self,
+        tol: float,
+        step: float,
+        first_horizon: float | None = None,
+        max_horizon: float = 20.0,
+        terminal_cost=None,
+        callback=None,
+    ) -> FiniteHorizonSolution:
         """Solve at ``first_horizon`` (default ``step``), then extend by ``step`` until E <= ``tol`` or
         ``max_horizon`` is reached (the horizon check of Section 5.1). The per-stage report is
         ``solution.summary()``; ``solution.converged`` says whether E met ``tol`` (when it did not by
@@ -273,8 +330,10 @@ class FiniteHorizonSolver(_Solver):
         first = step if first_horizon is None else _number(first_horizon, "first_horizon")
         max_horizon = _number(max_horizon, "max_horizon", allow_inf=True)
         if first > max_horizon + 1e-9:
-            raise ValueError(f"the first horizon ({'step' if first_horizon is None else 'first_horizon'}={first:g}) "
-                             f"exceeds max_horizon={max_horizon:g}; choose max_horizon >= {first:g}")
+            raise ValueError(
+                f"the first horizon ({'step' if first_horizon is None else 'first_horizon'}={first:g}) "
+                f"exceeds max_horizon={max_horizon:g}; choose max_horizon >= {first:g}"
+            )
         if callback is not None and not callable(callback):
             raise TypeError(f"callback must be callable or None; got {type(callback).__name__}")
         sol = self.solve(first, terminal_cost)
@@ -288,10 +347,13 @@ class FiniteHorizonSolver(_Solver):
                 raise
         sol = replace(sol, tol=tol)
         if not sol.converged and not sol.interrupted:
-            warnings.warn(f"solve_until stopped at max_horizon={max_horizon:g} without meeting tol={tol:g}: "
-                          f"E = {sol.metrics['E']:.3e} at T={sol.horizon:g} (converged=False); raise max_horizon, "
-                          f"or check tol against E_zero = {sol.metrics.get('E_zero', float('nan')):.3e}",
-                          RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"solve_until stopped at max_horizon={max_horizon:g} without meeting tol={tol:g}: "
+                f"E = {sol.metrics['E']:.3e} at T={sol.horizon:g} (converged=False); raise max_horizon, "
+                f"or check tol against E_zero = {sol.metrics.get('E_zero', float('nan')):.3e}",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         return sol
 
 
@@ -305,10 +367,17 @@ class SteadyStateSolver(_Solver):
     def solve(self) -> SteadyStateSolution:
         cfg = self.config
         torch.manual_seed(self.seed)
-        model = SteadyStateValue(self.system.n, self.system.train_domain, width=cfg.width, depth=cfg.depth,
-                                 activation=cfg.activation, ansatz=cfg.ansatz).to(self.device, self.dtype)
-        history = train_steady_state(self.system, model, cfg, seed=self.seed, progress=self.progress,
-                                     desc=f"{self.system.name} steady state")
+        model = SteadyStateValue(
+            self.system.n,
+            self.system.train_domain,
+            width=cfg.width,
+            depth=cfg.depth,
+            activation=cfg.activation,
+            ansatz=cfg.ansatz,
+        ).to(self.device, self.dtype)
+        history = train_steady_state(
+            self.system, model, cfg, seed=self.seed, progress=self.progress, desc=f"{self.system.name} steady state"
+        )
         for p in model.parameters():
             p.requires_grad_(False)
         trained = SteadyStateSolution(self.system, cfg, model.eval(), history, self.seed)

@@ -17,6 +17,7 @@ draw from a fixed seed (the same on every load and machine), computed in float64
 dtype. The notebook tests run a second time under it to show that their printed outputs do not depend on
 rounding-level differences (another CPU, another BLAS). Unset or empty: weights load exactly.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -50,10 +51,15 @@ def provenance(**extra) -> dict:
     """Versions and time stamp recorded with every artifact."""
     from . import __version__
 
-    info = {"pinnhjb": __version__, "torch": str(torch.__version__), "numpy": np.__version__,
-            "python": platform.python_version(), "platform": platform.platform(),
-            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "command": " ".join(sys.argv)}
+    info = {
+        "pinnhjb": __version__,
+        "torch": str(torch.__version__),
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join(sys.argv),
+    }
     info.update(extra)
     return info
 
@@ -121,22 +127,47 @@ def save(solution, path, **extra) -> Path:
         raise TypeError(f"cannot save a {type(solution).__name__}")
     path = Path(path)
     spec = solution.system.spec()
-    base = {"format": FORMAT, "version": FORMAT_VERSION, "system": spec, "fingerprint": solution.system.fingerprint(),
-            "config": solution.config.to_dict(), "dtype": str(solution.dtype).replace("torch.", ""),
-            "provenance": provenance(**extra)}
+    base = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "system": spec,
+        "fingerprint": solution.system.fingerprint(),
+        "config": solution.config.to_dict(),
+        "dtype": str(solution.dtype).replace("torch.", ""),
+        "provenance": provenance(**extra),
+    }
     if isinstance(solution, FiniteHorizonSolution):
         if solution.terminal_spec.get("kind") == "callable":
-            raise CheckpointError("a solution whose first terminal cost is a Python callable cannot be saved; "
-                                  "use a matrix (x'Px), zero, or CallableTerminalCost(fn, name=...)")
-        base.update(kind="finite_horizon", terminal=solution.terminal_spec, interrupted=solution.interrupted,
-                    wall_time=solution.wall_time,
-                    stages=[{"start": s.start, "length": s.length, "seed": s.seed, "state": _state(s.model),
-                             "history": s.history.to_dict(), "metrics": _plain(s.metrics)}
-                            for s in solution.stages])
+            raise CheckpointError(
+                "a solution whose first terminal cost is a Python callable cannot be saved; "
+                "use a matrix (x'Px), zero, or CallableTerminalCost(fn, name=...)"
+            )
+        base.update(
+            kind="finite_horizon",
+            terminal=solution.terminal_spec,
+            interrupted=solution.interrupted,
+            wall_time=solution.wall_time,
+            stages=[
+                {
+                    "start": s.start,
+                    "length": s.length,
+                    "seed": s.seed,
+                    "state": _state(s.model),
+                    "history": s.history.to_dict(),
+                    "metrics": _plain(s.metrics),
+                }
+                for s in solution.stages
+            ],
+        )
     else:
-        base.update(kind="steady_state", seed=solution.seed, state=_state(solution.model),
-                    history=solution.history.to_dict(), metrics=_plain(solution.metrics),
-                    wall_time=solution.wall_time)
+        base.update(
+            kind="steady_state",
+            seed=solution.seed,
+            state=_state(solution.model),
+            history=solution.history.to_dict(),
+            metrics=_plain(solution.metrics),
+            wall_time=solution.wall_time,
+        )
     _atomic_torch_save(base, path)
     return path
 
@@ -159,11 +190,15 @@ def _check_system(ckpt: dict, system, path=None):
         return system
     mine = system.spec()
     if (mine["n"], mine["m"]) != (spec["n"], spec["m"]):
-        raise CheckpointError(f"checkpoint is for system '{spec['name']}' with n={spec['n']}, m={spec['m']}; "
-                              f"the system given has n={mine['n']}, m={mine['m']}")
+        raise CheckpointError(
+            f"checkpoint is for system '{spec['name']}' with n={spec['n']}, m={spec['m']}; "
+            f"the system given has n={mine['n']}, m={mine['m']}"
+        )
     if spec.get("builder") and (mine["builder"], mine["params"]) != (spec["builder"], spec["params"]):
-        raise CheckpointError(f"checkpoint is for system {spec['builder']}({spec['params']}); the system given is "
-                              f"{mine['builder'] or mine['name']}({mine['params']})")
+        raise CheckpointError(
+            f"checkpoint is for system {spec['builder']}({spec['params']}); the system given is "
+            f"{mine['builder'] or mine['name']}({mine['params']})"
+        )
     _check_fingerprint(stored_fp, system, path)
     return system
 
@@ -178,10 +213,12 @@ def _check_fingerprint(stored: dict | None, system, path):
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: its stored system fingerprint is malformed: {exc}") from exc
     if diffs:
-        raise CheckpointError(f"{path} was trained on another system: the fingerprints differ in {diffs}.\n"
-                              f"  stored in the checkpoint: {fingerprint_summary(stored)}\n"
-                              f"  system given/rebuilt:     {fingerprint_summary(current)}\n"
-                              f"Pass the system the checkpoint was trained on (same name, R, boxes, f, g, Q).")
+        raise CheckpointError(
+            f"{path} was trained on another system: the fingerprints differ in {diffs}.\n"
+            f"  stored in the checkpoint: {fingerprint_summary(stored)}\n"
+            f"  system given/rebuilt:     {fingerprint_summary(current)}\n"
+            f"Pass the system the checkpoint was trained on (same name, R, boxes, f, g, Q)."
+        )
 
 
 def _require(d, keys, where: str, path):
@@ -235,13 +272,16 @@ def _check_stages(stages, path):
         try:
             start, length = float(st["start"]), float(st["length"])
         except (TypeError, ValueError):
-            raise CheckpointError(f"{path}: stage {i + 1} has a non-numeric start or length: "
-                                  f"{st['start']!r}, {st['length']!r}") from None
+            raise CheckpointError(
+                f"{path}: stage {i + 1} has a non-numeric start or length: {st['start']!r}, {st['length']!r}"
+            ) from None
         if not (math.isfinite(length) and length > 0):
             raise CheckpointError(f"{path}: stage {i + 1} has length {length!r}; expected a positive finite number")
         if not abs(start - end) <= 1e-9 * max(1.0, abs(end)):
-            raise CheckpointError(f"{path}: stage starts are inconsistent: stage {i + 1} starts at T={start:g}, but "
-                                  f"the stages before it end at T={end:g}")
+            raise CheckpointError(
+                f"{path}: stage starts are inconsistent: stage {i + 1} starts at T={start:g}, but "
+                f"the stages before it end at T={end:g}"
+            )
         end = start + length
 
 
@@ -262,16 +302,19 @@ def _load_state(model, state: dict, what: str):
     try:
         model.net.load_state_dict(state)
     except RuntimeError as exc:
-        raise CheckpointError(f"{what}: the stored weights do not fit the architecture in the checkpoint's "
-                              f"config: {exc}") from exc
+        raise CheckpointError(
+            f"{what}: the stored weights do not fit the architecture in the checkpoint's config: {exc}"
+        ) from exc
 
 
 def _terminal(term: dict, given, path):
     """The first stage's terminal cost from its stored spec (and the caller's function for a named one)."""
     if term["kind"] == "named":
         if given is None or getattr(given, "name", None) != term["name"]:
-            raise CheckpointError(f"{path} was trained with the terminal cost {term['name']!r}, which is code: pass "
-                                  f"terminal_cost=CallableTerminalCost(fn, name={term['name']!r})")
+            raise CheckpointError(
+                f"{path} was trained with the terminal cost {term['name']!r}, which is code: pass "
+                f"terminal_cost=CallableTerminalCost(fn, name={term['name']!r})"
+            )
         return given
     if given is not None:
         raise CheckpointError(f"{path} stores its own terminal cost ({term['kind']}); do not pass terminal_cost")
@@ -296,14 +339,19 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a pinnhjb checkpoint")
     if ckpt.get("version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path} has checkpoint format version {ckpt.get('version')}; this pinnhjb reads "
-                              f"version {FORMAT_VERSION}")
+        raise CheckpointError(
+            f"{path} has checkpoint format version {ckpt.get('version')}; this pinnhjb reads version {FORMAT_VERSION}"
+        )
     _require(ckpt, ("system", "config", "dtype", "kind", "provenance"), "checkpoint", path)
     kind = ckpt["kind"]
     if kind not in ("steady_state", "finite_horizon"):
         raise CheckpointError(f"{path}: unknown checkpoint kind {kind!r}; expected 'finite_horizon' or 'steady_state'")
-    _require(ckpt, ("seed", "state", "history", "metrics") if kind == "steady_state" else ("terminal", "stages"),
-             "checkpoint", path)
+    _require(
+        ckpt,
+        ("seed", "state", "history", "metrics") if kind == "steady_state" else ("terminal", "stages"),
+        "checkpoint",
+        path,
+    )
     if ckpt["dtype"] not in DTYPES:
         raise CheckpointError(f"{path}: unknown dtype {ckpt['dtype']!r}; expected one of {sorted(DTYPES)}")
     if kind == "finite_horizon":
@@ -328,8 +376,15 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
         model = SteadyStateValue(system.n, system.train_domain, **net_kw).to(dev, dtype)
         _load_state(model, _checked_state(ckpt["state"], "steady-state model", path, perturb), "steady-state model")
         model = model.eval().requires_grad_(False)
-        sol = SteadyStateSolution(system, stored, model, _history(ckpt["history"], "history", path), ckpt["seed"],
-                                  _metrics(ckpt["metrics"], "metrics", path), provenance=ckpt["provenance"])
+        sol = SteadyStateSolution(
+            system,
+            stored,
+            model,
+            _history(ckpt["history"], "history", path),
+            ckpt["seed"],
+            _metrics(ckpt["metrics"], "metrics", path),
+            provenance=ckpt["provenance"],
+        )
     else:
         term = ckpt["terminal"]
         _require(term, ("kind",), "terminal", path)
@@ -340,8 +395,16 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
             model = FiniteHorizonValue(system.n, st["length"], system.train_domain, phi, **net_kw).to(dev, dtype)
             _load_state(model, _checked_state(st["state"], f"stage {i + 1}", path, perturb), f"stage {i + 1}")
             model = model.eval().requires_grad_(False)
-            stages.append(Stage(model=model, start=st["start"], history=_history(st["history"], f"stage {i + 1}", path),
-                                seed=st["seed"], metrics=_metrics(st["metrics"], f"stage {i + 1}", path)))
-        sol = FiniteHorizonSolution(system, stored, stages, term, interrupted=ckpt.get("interrupted", False),
-                                    provenance=ckpt["provenance"])
+            stages.append(
+                Stage(
+                    model=model,
+                    start=st["start"],
+                    history=_history(st["history"], f"stage {i + 1}", path),
+                    seed=st["seed"],
+                    metrics=_metrics(st["metrics"], f"stage {i + 1}", path),
+                )
+            )
+        sol = FiniteHorizonSolution(
+            system, stored, stages, term, interrupted=ckpt.get("interrupted", False), provenance=ckpt["provenance"]
+        )
     return sol

@@ -12,11 +12,13 @@ the linearisation (A, B, Q) at the origin.
 Built-ins reproduce the paper's Section 6 with its constants: :func:`pendulum`, :func:`quartic`
 (with the erratum on its state cost, see there), :func:`third_order`, and :func:`linear_quadratic`.
 """
+
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -85,10 +87,10 @@ class ControlAffineSystem:
     R: Any
     domain: Any
     train_domain: Any = None
-    value_star: Optional[BatchFn] = None
-    policy_star: Optional[BatchFn] = None
-    params: Optional[dict] = None
-    builder: Optional[str] = None
+    value_star: BatchFn | None = None
+    policy_star: BatchFn | None = None
+    params: dict | None = None
+    builder: str | None = None
     n: int = field(init=False)
     m: int = field(init=False)
 
@@ -97,8 +99,10 @@ class ControlAffineSystem:
             raise TypeError(f"name must be a non-empty string; got {self.name!r}")
         for key in ("f", "g", "Q"):
             if not callable(getattr(self, key)):
-                raise TypeError(f"system '{self.name}': {key} must be a batched torch callable; got "
-                                f"{type(getattr(self, key)).__name__}")
+                raise TypeError(
+                    f"system '{self.name}': {key} must be a batched torch callable; got "
+                    f"{type(getattr(self, key)).__name__}"
+                )
         try:
             flat = np.ndim(self.domain) == 1
         except ValueError:  # ragged rows: _as_box says so
@@ -133,8 +137,10 @@ class ControlAffineSystem:
     # ------------------------------------------------------------------ validation
     def _hint(self) -> str:
         if getattr(self, "_flat_domain", False):
-            return (f" (the state dimension n=1 was taken from the flat domain {self.domain[0].tolist()}; for an "
-                    f"n-dimensional system give domain as n rows, e.g. [[-1, 1]] * n)")
+            return (
+                f" (the state dimension n=1 was taken from the flat domain {self.domain[0].tolist()}; for an "
+                f"n-dimensional system give domain as n rows, e.g. [[-1, 1]] * n)"
+            )
         return ""
 
     def _check_functions(self):
@@ -151,14 +157,17 @@ class ControlAffineSystem:
             try:
                 out = fn(probe)
             except Exception as exc:  # noqa: BLE001 - re-raised with context
-                raise ValueError(f"system '{self.name}': {key}(x) failed on a probe batch x of shape (5, {n}): "
-                                 f"{exc}{self._hint()}") from exc
+                raise ValueError(
+                    f"system '{self.name}': {key}(x) failed on a probe batch x of shape (5, {n}): {exc}{self._hint()}"
+                ) from exc
             if not isinstance(out, torch.Tensor):
                 raise TypeError(f"system '{self.name}': {key}(x) must return a torch.Tensor; got {type(out).__name__}")
             if key == "g" and out.ndim == 3 and out.shape[:2] == (5, n) and out.shape[2] != m:
-                raise ValueError(f"system '{self.name}': R is {m} x {m} but g(x) has m={out.shape[2]} columns "
-                                 f"(shape {tuple(out.shape)} for x of shape (5, {n})); R must be m x m with m the "
-                                 f"number of inputs, g's last dimension")
+                raise ValueError(
+                    f"system '{self.name}': R is {m} x {m} but g(x) has m={out.shape[2]} columns "
+                    f"(shape {tuple(out.shape)} for x of shape (5, {n})); R must be m x m with m the "
+                    f"number of inputs, g's last dimension"
+                )
             if tuple(out.shape) != shape:
                 raise ValueError(
                     f"system '{self.name}': {key}(x) returned shape {tuple(out.shape)} for x of shape (5, {n}); "
@@ -166,8 +175,10 @@ class ControlAffineSystem:
                 )
             bad = ~torch.isfinite(out.reshape(5, -1)).all(-1)
             if torch.any(bad):
-                raise ValueError(f"system '{self.name}': {key}(x) is NaN or infinite at {int(bad.sum())} of 5 states "
-                                 f"of a probe batch, e.g. x = {probe[bad][0].tolist()}")
+                raise ValueError(
+                    f"system '{self.name}': {key}(x) is NaN or infinite at {int(bad.sum())} of 5 states "
+                    f"of a probe batch, e.g. x = {probe[bad][0].tolist()}"
+                )
         zero = torch.zeros(1, n, dtype=torch.float64)
         f0 = self.f(zero)
         if not f0.abs().max() <= 1e-10:  # NaN fails too
@@ -177,8 +188,10 @@ class ControlAffineSystem:
             raise ValueError(f"system '{self.name}': Q(0) must be 0 (Q positive definite); got {q0.item()}")
         if torch.any(self.Q(probe) < 0):
             raise ValueError(f"system '{self.name}': Q(x) is negative on a probe point; Q must be positive definite")
-        self.check_finite(self.sample(512, torch.Generator().manual_seed(1), dtype=torch.float64), "a probe of "
-                          "512 states of the training box")
+        self.check_finite(
+            self.sample(512, torch.Generator().manual_seed(1), dtype=torch.float64),
+            "a probe of 512 states of the training box",
+        )
 
     def check_finite(self, x: Tensor, where: str):
         """Raise a ValueError naming the function and a state where f, g or Q is NaN or infinite on ``x``."""
@@ -188,19 +201,29 @@ class ControlAffineSystem:
                 bad = ~torch.isfinite(out.reshape(out.shape[0], -1)).all(-1)
                 if torch.any(bad):
                     first = x[bad][0].detach().cpu().tolist()
-                    raise ValueError(f"system '{self.name}': {key}(x) is NaN or infinite at {int(bad.sum())} of "
-                                     f"{x.shape[0]} states of {where}, e.g. x = {first}; f, g, Q must be finite on "
-                                     f"the whole training box {self.train_domain.tolist()}")
+                    raise ValueError(
+                        f"system '{self.name}': {key}(x) is NaN or infinite at {int(bad.sum())} of "
+                        f"{x.shape[0]} states of {where}, e.g. x = {first}; f, g, Q must be finite on "
+                        f"the whole training box {self.train_domain.tolist()}"
+                    )
 
     def _check_boxes(self):
         dom, train = self.domain, self.train_domain
         if np.any(dom[:, 0] > 0) or np.any(dom[:, 1] < 0):
-            warnings.warn(f"system '{self.name}': Omega {dom.tolist()} does not contain the origin, the equilibrium "
-                          f"the value function is anchored at (V(0) = 0)", UserWarning, stacklevel=4)
+            warnings.warn(
+                f"system '{self.name}': Omega {dom.tolist()} does not contain the origin, the equilibrium "
+                f"the value function is anchored at (V(0) = 0)",
+                UserWarning,
+                stacklevel=4,
+            )
         if np.any(train[:, 0] > dom[:, 0]) or np.any(train[:, 1] < dom[:, 1]):
-            warnings.warn(f"system '{self.name}': the training box {train.tolist()} does not contain Omega "
-                          f"{dom.tolist()}; E and the errors are measured on Omega, partly outside what was trained "
-                          f"(usually the training box is Omega or larger)", UserWarning, stacklevel=4)
+            warnings.warn(
+                f"system '{self.name}': the training box {train.tolist()} does not contain Omega "
+                f"{dom.tolist()}; E and the errors are measured on Omega, partly outside what was trained "
+                f"(usually the training box is Omega or larger)",
+                UserWarning,
+                stacklevel=4,
+            )
 
     def linearize(self) -> Linearization:
         """The linearisation at the origin: ``A = df/dx(0)`` (n, n), ``B = g(0)`` (n, m) and ``Q`` (n, n) with
@@ -211,8 +234,9 @@ class ControlAffineSystem:
             A = torch.autograd.functional.jacobian(lambda z: self.f(z[None])[0], zero)
             H = torch.autograd.functional.hessian(lambda z: self.Q(z[None])[0], zero)
         except Exception as exc:  # noqa: BLE001 - re-raised with context
-            raise ValueError(f"system '{self.name}': linearize() differentiates f and Q by autograd, which failed: "
-                             f"{exc}") from exc
+            raise ValueError(
+                f"system '{self.name}': linearize() differentiates f and Q by autograd, which failed: {exc}"
+            ) from exc
         B = self.g(zero[None])[0]
         return Linearization(A.detach().numpy().copy(), B.detach().numpy().copy(), 0.5 * H.detach().numpy())
 
@@ -238,8 +262,9 @@ class ControlAffineSystem:
         gTp = torch.einsum("bnm,bn->bm", self.g(x), grad_v)
         return -0.5 * gTp @ self.R_inv_tensor(x).T
 
-    def hamiltonian_min(self, x: Tensor, grad_v: Tensor, fx: Tensor | None = None, gx: Tensor | None = None,
-                        qx: Tensor | None = None) -> Tensor:
+    def hamiltonian_min(
+        self, x: Tensor, grad_v: Tensor, fx: Tensor | None = None, gx: Tensor | None = None, qx: Tensor | None = None
+    ) -> Tensor:
         """min_u H(x, u, p) = p'f + Q - 1/4 p' g R^{-1} g' p: the left side of the steady-state HJB (eq. (4)).
 
         With p = grad_x V(x, t) and ``+ dV/dt`` it is the flow residual F_e of eq. (5)/(HJBT); at t = 0 it
@@ -269,8 +294,9 @@ class ControlAffineSystem:
         mesh = torch.meshgrid(*axes, indexing="ij")
         return torch.stack([m.reshape(-1) for m in mesh], dim=-1)
 
-    def sample(self, count: int, generator: torch.Generator, dtype=torch.float32, device=None,
-               box: np.ndarray | None = None) -> Tensor:
+    def sample(
+        self, count: int, generator: torch.Generator, dtype=torch.float32, device=None, box: np.ndarray | None = None
+    ) -> Tensor:
         """Uniform samples from the training box (or ``box``): shape (count, n)."""
         box = self.train_domain if box is None else box
         lo = torch.as_tensor(box[:, 0], dtype=dtype, device=device)
@@ -287,17 +313,32 @@ class ControlAffineSystem:
         x = torch.as_tensor(centre + half * u, dtype=torch.float64)
         with torch.no_grad():
             values = {k: getattr(self, k)(x).detach().cpu().double().numpy().tolist() for k in ("f", "g", "Q")}
-        return {"name": self.name, "n": self.n, "m": self.m, "R": self.R.tolist(), "domain": self.domain.tolist(),
-                "train_domain": self.train_domain.tolist(), "probes": x.numpy().tolist(), **values}
+        return {
+            "name": self.name,
+            "n": self.n,
+            "m": self.m,
+            "R": self.R.tolist(),
+            "domain": self.domain.tolist(),
+            "train_domain": self.train_domain.tolist(),
+            "probes": x.numpy().tolist(),
+            **values,
+        }
 
     def spec(self) -> dict:
         """What storage needs to rebuild this system: its registry name and parameters."""
-        return {"name": self.name, "builder": self.builder,
-                "params": dict(self.params) if self.params is not None else None, "n": self.n, "m": self.m}
+        return {
+            "name": self.name,
+            "builder": self.builder,
+            "params": dict(self.params) if self.params is not None else None,
+            "n": self.n,
+            "m": self.m,
+        }
 
     def __repr__(self):
-        return (f"ControlAffineSystem(name={self.name!r}, n={self.n}, m={self.m}, R={self.R.tolist()}, "
-                f"domain={self.domain.tolist()}, known V*={self.value_star is not None})")
+        return (
+            f"ControlAffineSystem(name={self.name!r}, n={self.n}, m={self.m}, R={self.R.tolist()}, "
+            f"domain={self.domain.tolist()}, known V*={self.value_star is not None})"
+        )
 
 
 # ====================================================================== fingerprints
@@ -315,8 +356,9 @@ def fingerprint_difference(stored: dict, current: dict, rtol: float = 1e-7) -> l
         a, b = np.asarray(stored.get(key), dtype=float), np.asarray(current.get(key), dtype=float)
         tight = key in ("R", "domain", "train_domain", "probes")
         scale = max(1.0, float(np.max(np.abs(a)))) if a.size else 1.0
-        if a.shape != b.shape or not np.allclose(a, b, rtol=1e-12 if tight else rtol,
-                                                 atol=1e-12 * scale if tight else rtol * 1e-3 * scale):
+        if a.shape != b.shape or not np.allclose(
+            a, b, rtol=1e-12 if tight else rtol, atol=1e-12 * scale if tight else rtol * 1e-3 * scale
+        ):
             diffs.append(key)
     return diffs
 
@@ -330,17 +372,23 @@ def fingerprint_summary(fp: dict) -> str:
         text = np.array2string(arr.ravel(), precision=6, separator=",", threshold=10**6)
         return f"{key}:{hashlib.sha1(text.encode()).hexdigest()[:8]}"
 
-    return (f"{{name={fp.get('name')!r}, n={fp.get('n')}, m={fp.get('m')}, R={fp.get('R')}, "
-            f"domain={fp.get('domain')}, train_domain={fp.get('train_domain')}, "
-            f"{', '.join(digest(k) for k in ('f', 'g', 'Q'))}}}")
+    return (
+        f"{{name={fp.get('name')!r}, n={fp.get('n')}, m={fp.get('m')}, R={fp.get('R')}, "
+        f"domain={fp.get('domain')}, train_domain={fp.get('train_domain')}, "
+        f"{', '.join(digest(k) for k in ('f', 'g', 'Q'))}}}"
+    )
 
 
 # ====================================================================== built-in systems
 
+
 def _positive(value, name: str, system: str) -> float:
     """A built-in's scalar parameter as a positive finite float, or a ValueError naming it."""
-    if isinstance(value, (bool, str)) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not 0 < float(value) < np.inf:
+    if (
+        isinstance(value, (bool, str))
+        or not isinstance(value, (int, float, np.integer, np.floating))
+        or not 0 < float(value) < np.inf
+    ):
         raise ValueError(f"{system}: parameter {name} must be a positive finite number; got {value!r}")
     return float(value)
 
@@ -366,8 +414,17 @@ def pendulum(R: float = 1.0) -> ControlAffineSystem:
     def Q(x):
         return (x**2).sum(-1)
 
-    return ControlAffineSystem("pendulum", f, g, Q, [[R]], domain=[[-1, 1], [-1, 1]],
-                               train_domain=[[-1.5, 1.5], [-1.5, 1.5]], params={"R": float(R)}, builder="pendulum")
+    return ControlAffineSystem(
+        "pendulum",
+        f,
+        g,
+        Q,
+        [[R]],
+        domain=[[-1, 1], [-1, 1]],
+        train_domain=[[-1.5, 1.5], [-1.5, 1.5]],
+        params={"R": float(R)},
+        builder="pendulum",
+    )
 
 
 QUARTIC_STATE_COSTS = ("consistent", "paper")
@@ -391,8 +448,9 @@ def quartic(state_cost: str = "consistent") -> ControlAffineSystem:
 
     def f(x):
         x1, x2 = x[:, 0], x[:, 1]
-        return torch.stack([-x1 + x2 + 2 * x2**3,
-                            -0.5 * (x1 + x2) + 0.5 * x2 * (1 + 2 * x2**2) * torch.sin(x1) ** 2], dim=-1)
+        return torch.stack(
+            [-x1 + x2 + 2 * x2**3, -0.5 * (x1 + x2) + 0.5 * x2 * (1 + 2 * x2**2) * torch.sin(x1) ** 2], dim=-1
+        )
 
     def g(x):
         out = torch.zeros(x.shape[0], 2, 1, dtype=x.dtype, device=x.device)
@@ -409,11 +467,19 @@ def quartic(state_cost: str = "consistent") -> ControlAffineSystem:
         return (-torch.sin(x[:, 0]) * (x[:, 1] + 2 * x[:, 1] ** 3)).unsqueeze(-1)
 
     known = state_cost == "consistent"
-    return ControlAffineSystem("quartic", f, g, Q, [[1.0]], domain=[[-1.2, 1.2], [-1.2, 1.2]],
-                               train_domain=[[-1.5, 1.5], [-1.5, 1.5]],
-                               value_star=value_star if known else None,
-                               policy_star=policy_star if known else None,
-                               params={"state_cost": state_cost}, builder="quartic")
+    return ControlAffineSystem(
+        "quartic",
+        f,
+        g,
+        Q,
+        [[1.0]],
+        domain=[[-1.2, 1.2], [-1.2, 1.2]],
+        train_domain=[[-1.5, 1.5], [-1.5, 1.5]],
+        value_star=value_star if known else None,
+        policy_star=policy_star if known else None,
+        params={"state_cost": state_cost},
+        builder="quartic",
+    )
 
 
 def third_order(R: float = 1.0) -> ControlAffineSystem:
@@ -438,8 +504,17 @@ def third_order(R: float = 1.0) -> ControlAffineSystem:
     def Q(x):
         return (x**2).sum(-1)
 
-    return ControlAffineSystem("third_order", f, g, Q, [[R]], domain=[[-0.2, 0.2]] * 3,
-                               train_domain=[[-0.25, 0.25]] * 3, params={"R": float(R)}, builder="third_order")
+    return ControlAffineSystem(
+        "third_order",
+        f,
+        g,
+        Q,
+        [[R]],
+        domain=[[-0.2, 0.2]] * 3,
+        train_domain=[[-0.25, 0.25]] * 3,
+        params={"R": float(R)},
+        builder="third_order",
+    )
 
 
 def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") -> ControlAffineSystem:
@@ -482,12 +557,28 @@ def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") ->
     def policy_star(x):
         return -x @ mat(K, x).T
 
-    params = {"A": A.tolist(), "B": B.tolist(), "Q": Qm.tolist(), "R": Rm.tolist(),
-              "domain": np.asarray(domain, dtype=float).tolist(),
-              "train_domain": None if train_domain is None else np.asarray(train_domain, dtype=float).tolist(),
-              "name": name}
-    return ControlAffineSystem(name, f, g, Qf, Rm, domain=domain, train_domain=train_domain,
-                               value_star=value_star, policy_star=policy_star, params=params, builder="lq")
+    params = {
+        "A": A.tolist(),
+        "B": B.tolist(),
+        "Q": Qm.tolist(),
+        "R": Rm.tolist(),
+        "domain": np.asarray(domain, dtype=float).tolist(),
+        "train_domain": None if train_domain is None else np.asarray(train_domain, dtype=float).tolist(),
+        "name": name,
+    }
+    return ControlAffineSystem(
+        name,
+        f,
+        g,
+        Qf,
+        Rm,
+        domain=domain,
+        train_domain=train_domain,
+        value_star=value_star,
+        policy_star=policy_star,
+        params=params,
+        builder="lq",
+    )
 
 
 SYSTEMS: dict[str, Callable[..., ControlAffineSystem]] = {

@@ -8,6 +8,7 @@ the per-point residuals (:mod:`pinnhjb.gauss_newton`). The residuals and their J
 evaluated once per stage on a pool of states and then indexed, so a frozen chain of previous stages
 costs nothing per step.
 """
+
 from __future__ import annotations
 
 import math
@@ -25,8 +26,15 @@ from .residuals import Residual, get_residual
 
 Tensor = torch.Tensor
 
-__all__ = ["TrainHistory", "StatePool", "shared_times", "train_finite_horizon", "train_steady_state", "resolve_device",
-           "DTYPES"]
+__all__ = [
+    "TrainHistory",
+    "StatePool",
+    "shared_times",
+    "train_finite_horizon",
+    "train_steady_state",
+    "resolve_device",
+    "DTYPES",
+]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -70,11 +78,18 @@ class TrainHistory:
             object.__setattr__(self, name, list(getattr(self, name)))
 
     def to_dict(self) -> dict:
-        return {"step": list(self.step), "loss": list(self.loss), "wall": list(self.wall), "phase": list(self.phase),
-                "stop_reason": self.stop_reason, "wall_time": self.wall_time, "final_loss": self.final_loss}
+        return {
+            "step": list(self.step),
+            "loss": list(self.loss),
+            "wall": list(self.wall),
+            "phase": list(self.phase),
+            "stop_reason": self.stop_reason,
+            "wall_time": self.wall_time,
+            "final_loss": self.final_loss,
+        }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TrainHistory":
+    def from_dict(cls, d: dict) -> TrainHistory:
         return cls(**d)
 
 
@@ -94,18 +109,22 @@ class _Log:
         self.phase.append(phase)
 
     def history(self) -> TrainHistory:
-        return TrainHistory(self.step, self.loss, self.wall, self.phase, self.stop_reason, self.wall_time,
-                            self.final_loss)
+        return TrainHistory(
+            self.step, self.loss, self.wall, self.phase, self.stop_reason, self.wall_time, self.final_loss
+        )
 
 
 # ---------------------------------------------------------------------- cached data
+
 
 def _check_finite(values: Tensor, x: Tensor, what: str, hint: str):
     """Before training: a ValueError naming ``what`` and a state where ``values`` (one row per state) is not finite."""
     bad = ~torch.isfinite(values.reshape(values.shape[0], -1)).all(-1)
     if torch.any(bad):
-        raise ValueError(f"{what} is NaN or infinite at {int(bad.sum())} of {x.shape[0]} training states, e.g. "
-                         f"x = {x[bad][0].detach().cpu().tolist()}; {hint}")
+        raise ValueError(
+            f"{what} is NaN or infinite at {int(bad.sum())} of {x.shape[0]} training states, e.g. "
+            f"x = {x[bad][0].detach().cpu().tolist()}; {hint}"
+        )
 
 
 class StatePool:
@@ -125,8 +144,12 @@ class StatePool:
             self.gx = system.g(x)
             self.qx = system.Q(x)
         for key, out in (("f", self.fx), ("g", self.gx), ("Q", self.qx)):
-            _check_finite(out, x, f"system '{system.name}': {key}(x)",
-                          f"f, g, Q must be finite on the whole training box {system.train_domain.tolist()}")
+            _check_finite(
+                out,
+                x,
+                f"system '{system.name}': {key}(x)",
+                f"f, g, Q must be finite on the whole training box {system.train_domain.tolist()}",
+            )
         self.phi = self.dphi = None
         if isinstance(terminal, ValueTerminalCost):  # a long chain: bound the autograd graph held per chunk
             chunk = max(512, chunk * 16 // max(16, len(terminal.previous.chain())))
@@ -160,6 +183,7 @@ class StatePool:
 
 # ---------------------------------------------------------------------- the optimisation loop
 
+
 def _lr_factor(config: TrainConfig):
     K = max(config.adam_steps, 1)
     if config.schedule == "cosine":
@@ -170,8 +194,9 @@ def _lr_factor(config: TrainConfig):
     return lambda k: 1.0
 
 
-def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str, progress: bool,
-              lm=None) -> TrainHistory:
+def _optimize(
+    params, batch_loss, sample, epochs, config: TrainConfig, desc: str, progress: bool, lm=None
+) -> TrainHistory:
     """Adam (resampled batches, or epochs of fixed mini-batches with the paper's stop rule), then L-BFGS, then
     Levenberg-Marquardt.
 
@@ -185,8 +210,13 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
     start = time.perf_counter()
     opt = torch.optim.Adam(params, lr=config.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(config))
-    bar = tqdm(total=config.adam_steps + config.lbfgs_steps + config.lm_steps, desc=desc, disable=not progress,
-               leave=False, dynamic_ncols=True)
+    bar = tqdm(
+        total=config.adam_steps + config.lbfgs_steps + config.lm_steps,
+        desc=desc,
+        disable=not progress,
+        leave=False,
+        dynamic_ncols=True,
+    )
     step = 0
     last = float("nan")
 
@@ -195,9 +225,14 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
         opt.zero_grad(set_to_none=True)
         loss = batch_loss(batch)
         if not torch.isfinite(loss):
-            raise DivergenceError(desc, "Adam", step + 1, f"the loss is {loss.item()}",
-                                  "lower lr, or check the scale of the system (f, g, Q, R) and that f, g, Q are "
-                                  "finite on the training box")
+            raise DivergenceError(
+                desc,
+                "Adam",
+                step + 1,
+                f"the loss is {loss.item()}",
+                "lower lr, or check the scale of the system (f, g, Q, R) and that f, g, Q are "
+                "finite on the training box",
+            )
         loss.backward()
         opt.step()
         sched.step()
@@ -238,8 +273,15 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
     evals = 0
     if config.lbfgs_steps > 0:
         batch = sample(config.lbfgs_points)
-        lbfgs = torch.optim.LBFGS(params, lr=1.0, max_iter=config.lbfgs_steps, history_size=50,
-                                  tolerance_grad=1e-12, tolerance_change=1e-15, line_search_fn="strong_wolfe")
+        lbfgs = torch.optim.LBFGS(
+            params,
+            lr=1.0,
+            max_iter=config.lbfgs_steps,
+            history_size=50,
+            tolerance_grad=1e-12,
+            tolerance_change=1e-15,
+            line_search_fn="strong_wolfe",
+        )
 
         def closure():
             nonlocal evals
@@ -265,8 +307,12 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
             final = batch_loss(batch)
             if not torch.isfinite(final):
                 raise DivergenceError(desc, "L-BFGS", evals, f"the loss is {final.item()}")
-            warnings.warn(f"stage {desc}: L-BFGS diverged (non-finite loss after {evals} evaluations); kept the "
-                          f"weights from before L-BFGS (loss {final.item():.3e})", RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"stage {desc}: L-BFGS diverged (non-finite loss after {evals} evaluations); kept the "
+                f"weights from before L-BFGS (loss {final.item():.3e})",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         hist.final_loss = final.item()
     else:
         hist.final_loss = last
@@ -286,10 +332,20 @@ def _optimize(params, batch_loss, sample, epochs, config: TrainConfig, desc: str
             # the coarse level ends on a stall: without the stall rule, lm_points throughout
             coarse = config.lm_points_coarse if config.lm_min_progress is not None else None
             points = (config.lm_points,) if coarse is None else (coarse, config.lm_points)
-            result = levenberg_marquardt(flat.get(), residual.point_residual(flat), lm_sample, config.lm_steps,
-                                         points, damping=config.lm_damping, max_time=left, on_step=on_step,
-                                         min_progress=config.lm_min_progress, stall_windows=config.lm_stall_windows,
-                                         desc=desc, jacobian=residual.jacobian())
+            result = levenberg_marquardt(
+                flat.get(),
+                residual.point_residual(flat),
+                lm_sample,
+                config.lm_steps,
+                points,
+                damping=config.lm_damping,
+                max_time=left,
+                on_step=on_step,
+                min_progress=config.lm_min_progress,
+                stall_windows=config.lm_stall_windows,
+                desc=desc,
+                jacobian=residual.jacobian(),
+            )
             flat.set(result.theta)
             iterations = result.steps
             hist.final_loss = result.loss
@@ -334,14 +390,22 @@ def _residual(system, model, residual, default: str) -> Residual:
     """The residual object of form ``residual`` (a name, a class or None for ``default``) on ``model``."""
     form = get_residual(default if residual is None else residual)
     if form.ansatz is not None and form.ansatz != model.ansatz:
-        raise ValueError(f"the residual form {form.name!r} trains a model with ansatz={form.ansatz}; this model has "
-                         f"ansatz={model.ansatz}")
+        raise ValueError(
+            f"the residual form {form.name!r} trains a model with ansatz={form.ansatz}; this model has "
+            f"ansatz={model.ansatz}"
+        )
     return form(system, model)
 
 
-def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig, seed: int = 0,
-                         progress: bool = True, desc: str = "stage",
-                         residual: str | type[Residual] | None = None) -> TrainHistory:
+def train_finite_horizon(
+    system,
+    model: FiniteHorizonValue,
+    config: TrainConfig,
+    seed: int = 0,
+    progress: bool = True,
+    desc: str = "stage",
+    residual: str | type[Residual] | None = None,
+) -> TrainHistory:
     """Train ``model`` in place on the finite-horizon HJB (eq-hjbt) over Omega x [0, model.horizon] (Algorithm 1).
 
     * ``system``: the control-affine system.
@@ -360,8 +424,9 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
     T = model.horizon
     terminal = model.terminal_cost
     n_pool = config.pool_size if config.sampling == "resample" else config.n_flow
-    pool = StatePool(system, system.sample(n_pool, gen, dtype=dtype, device=device), terminal,
-                     need_phi_grad=model.ansatz)
+    pool = StatePool(
+        system, system.sample(n_pool, gen, dtype=dtype, device=device), terminal, need_phi_grad=model.ansatz
+    )
     bnd = None
     if not model.ansatz:
         n_b = config.n_boundary if config.sampling == "fixed" else config.pool_size
@@ -390,7 +455,7 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
         perm_b = torch.randperm(len(bnd), generator=gen).to(device) if bnd is not None else None
         perm_o = torch.randperm(config.n_origin, generator=gen).to(device)
         for b in range(n_batches):
-            idx = perm[b * config.batch_size:(b + 1) * config.batch_size]
+            idx = perm[b * config.batch_size : (b + 1) * config.batch_size]
             if model.ansatz:
                 yield pool.take(idx), t_flow[idx], None, None
             else:
@@ -400,6 +465,7 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
 
     lm = None
     if config.lm_steps > 0:
+
         def lm_sample(size):
             flow = pool.take(_randint(gen, len(pool), size, device))
             t = _uniform(gen, size, T, dtype, device)
@@ -410,9 +476,15 @@ def train_finite_horizon(system, model: FiniteHorizonValue, config: TrainConfig,
     return _optimize(params, batch_loss, sample, epochs, config, desc, progress, lm)
 
 
-def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, seed: int = 0,
-                       progress: bool = True, desc: str = "steady state",
-                       residual: str | type[Residual] | None = None) -> TrainHistory:
+def train_steady_state(
+    system,
+    model: SteadyStateValue,
+    config: TrainConfig,
+    seed: int = 0,
+    progress: bool = True,
+    desc: str = "steady state",
+    residual: str | type[Residual] | None = None,
+) -> TrainHistory:
     """Train ``model`` in place on the steady-state HJB (eq-hjb) directly (the paper's T = infinity baseline).
 
     * ``system``: the control-affine system.
@@ -436,13 +508,13 @@ def train_steady_state(system, model: SteadyStateValue, config: TrainConfig, see
     def epochs():
         perm = torch.randperm(len(pool), generator=gen).to(device)
         for b in range(max(1, len(pool) // config.batch_size)):
-            yield pool.take(perm[b * config.batch_size:(b + 1) * config.batch_size])
+            yield pool.take(perm[b * config.batch_size : (b + 1) * config.batch_size])
 
     lm = None
     if config.lm_steps > 0:
+
         def lm_sample(size):
             return res.point_arguments(sample(size), None)
 
         lm = (FlatParameters(model.net), res, lm_sample)
     return _optimize(model.net.parameters(), res.loss, sample, epochs, config, desc, progress, lm)
-

@@ -6,15 +6,15 @@ precomputed images (instant response, no redrawing); on the static book site, wh
 output carries a self-contained HTML slider (inline images and a few lines of JavaScript, no CDN) that the
 book renders instead (``_config.yml`` puts ``text/html`` before the widget view for the HTML builder).
 """
+
 from __future__ import annotations
 
 import base64
 import hashlib
 import html
 import io
-from typing import Callable, Sequence
-
 import struct
+from collections.abc import Callable, Sequence
 
 import matplotlib.pyplot as plt
 
@@ -41,8 +41,16 @@ def png_width(png: bytes) -> int:
 class FrameExplorer:
     """Precomputed frames, one per value, with a live (ipywidgets) and a static (HTML + JS) rendering."""
 
-    def __init__(self, frames: Sequence[bytes], values: Sequence, label: str = "T", fmt: str = "{:g}",
-                 start: int = 0, alt: str = "", scale: int = SCALE):
+    def __init__(
+        self,
+        frames: Sequence[bytes],
+        values: Sequence,
+        label: str = "T",
+        fmt: str = "{:g}",
+        start: int = 0,
+        alt: str = "",
+        scale: int = SCALE,
+    ):
         if len(frames) != len(values) or not frames:
             raise ValueError(f"need one frame per value; got {len(frames)} frames for {len(values)} values")
         self.frames = list(frames)
@@ -61,11 +69,16 @@ class FrameExplorer:
         import ipywidgets as w
 
         labels = self._labels()
-        image = w.Image(value=self.frames[self.start], format="png",
-                        width=png_width(self.frames[self.start]) // self.scale)
-        slider = w.SelectionSlider(options=list(zip(labels, range(len(labels)))), value=self.start,
-                                   description=f"{self.label} =", continuous_update=True,
-                                   layout=w.Layout(width="60%"))
+        image = w.Image(
+            value=self.frames[self.start], format="png", width=png_width(self.frames[self.start]) // self.scale
+        )
+        slider = w.SelectionSlider(
+            options=list(zip(labels, range(len(labels)))),
+            value=self.start,
+            description=f"{self.label} =",
+            continuous_update=True,
+            layout=w.Layout(width="60%"),
+        )
         slider.observe(lambda change: setattr(image, "value", self.frames[change["new"]]), names="value")
         return w.VBox([slider, image])
 
@@ -76,25 +89,28 @@ class FrameExplorer:
         srcs = [f"data:image/png;base64,{base64.b64encode(f).decode()}" for f in self.frames]
         labels = self._labels()
         alt = html.escape(self.alt + ", " if self.alt else "")
-        imgs = "".join(f'<img src="{s}" data-i="{i}" width="{png_width(f) // self.scale}" '
-                       f'style="display:{"block" if i == self.start else "none"};max-width:100%;height:auto" '
-                       f'alt="{alt}{html.escape(self.label)} = {html.escape(lab)}">'
-                       for i, (s, f, lab) in enumerate(zip(srcs, self.frames, labels)))
+        imgs = "".join(
+            f'<img src="{s}" data-i="{i}" width="{png_width(f) // self.scale}" '
+            f'style="display:{"block" if i == self.start else "none"};max-width:100%;height:auto" '
+            f'alt="{alt}{html.escape(self.label)} = {html.escape(lab)}">'
+            for i, (s, f, lab) in enumerate(zip(srcs, self.frames, labels))
+        )
         label_js = ",".join(f'"{html.escape(lab)}"' for lab in labels)
-        return (f'<div class="pinnhjb-explorer" id="{uid}">'
-                f'<label>{html.escape(self.label)} = <span class="pinnhjb-value">{html.escape(labels[self.start])}'
-                f'</span></label> <input type="range" min="0" max="{len(srcs) - 1}" step="1" value="{self.start}" '
-                f'style="width:60%" aria-label="{html.escape(self.label)}">'
-                f'<div class="pinnhjb-frames">{imgs}</div>'
-                f'<script>(function(){{var r=document.getElementById("{uid}");var L=[{label_js}];'
-                f'var s=r.querySelector("input");s.addEventListener("input",function(){{'
-                f'r.querySelectorAll(".pinnhjb-frames img").forEach(function(im){{'
-                f'im.style.display=(im.dataset.i==s.value)?"block":"none";}});'
-                f'r.querySelector(".pinnhjb-value").textContent=L[s.value];}});}})();</script></div>')
+        return (
+            f'<div class="pinnhjb-explorer" id="{uid}">'
+            f'<label>{html.escape(self.label)} = <span class="pinnhjb-value">{html.escape(labels[self.start])}'
+            f'</span></label> <input type="range" min="0" max="{len(srcs) - 1}" step="1" value="{self.start}" '
+            f'style="width:60%" aria-label="{html.escape(self.label)}">'
+            f'<div class="pinnhjb-frames">{imgs}</div>'
+            f'<script>(function(){{var r=document.getElementById("{uid}");var L=[{label_js}];'
+            f'var s=r.querySelector("input");s.addEventListener("input",function(){{'
+            f'r.querySelectorAll(".pinnhjb-frames img").forEach(function(im){{'
+            f'im.style.display=(im.dataset.i==s.value)?"block":"none";}});'
+            f'r.querySelector(".pinnhjb-value").textContent=L[s.value];}});}})();</script></div>'
+        )
 
     def _repr_mimebundle_(self, include=None, exclude=None):
-        bundle = {"text/plain": f"FrameExplorer({self.label}: {', '.join(self._labels())})",
-                  "text/html": self.html()}
+        bundle = {"text/plain": f"FrameExplorer({self.label}: {', '.join(self._labels())})", "text/html": self.html()}
         try:
             w = self.widget()
         except ImportError:  # no ipywidgets: the static slider still works in any browser
@@ -104,8 +120,14 @@ class FrameExplorer:
         return bundle
 
 
-def explorer(draw: Callable[[object], "plt.Figure"], values: Sequence, label: str = "T", fmt: str = "{:g}",
-             start: int = 0, alt: str = "") -> FrameExplorer:
+def explorer(
+    draw: Callable[[object], plt.Figure],
+    values: Sequence,
+    label: str = "T",
+    fmt: str = "{:g}",
+    start: int = 0,
+    alt: str = "",
+) -> FrameExplorer:
     """Draw every frame once and return a :class:`FrameExplorer` over them.
 
     * ``draw``: value -> matplotlib figure (closed once rendered); give every frame the same axis limits when

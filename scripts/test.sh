@@ -8,7 +8,8 @@
 # Then the notebooks a second time with every loaded checkpoint's weights perturbed by a relative 1e-13
 # (PINNHJB_PERTURB_WEIGHTS, pinnhjb.storage): rounding noise of another CPU or BLAS must not change a printed
 # number, so the stored outputs must still match.
-# The tests run even when the build fails, so one run reports both; the exit status is then a failure.
+# ruff (pinned in requirements.txt, settings in pyproject.toml) checks and format-checks the code first.
+# The tests run even when the build or the linter fails, so one run reports both; the exit status is then a failure.
 # pytest's exit code 5 (no tests collected) is turned into a failure.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -17,6 +18,12 @@ build_rc=$?
 if [ "$build_rc" -ne 0 ]; then
   echo "book build failed (exit $build_rc); running the tests anyway" >&2
   [ -x .venv/bin/python ] || exit 1
+fi
+echo "== ruff check, ruff format --check"
+.venv/bin/ruff check . && .venv/bin/ruff format --check .
+lint_rc=$?
+if [ "$lint_rc" -ne 0 ] && [ "$build_rc" -eq 0 ]; then
+  build_rc=$lint_rc
 fi
 .venv/bin/python -m pytest tests notebooks --nbval --nbval-current-env "$@"
 rc=$?

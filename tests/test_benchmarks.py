@@ -1,6 +1,7 @@
 """The speed benchmark's bookkeeping (benchmarks/speed.py), on made-up traces: which runs it plans, which run of a
 method counts as its best chain step, and the goal verdict. No training here: the benchmark itself is timed in
 ``benchmarks/``, never in the test suite."""
+
 import importlib.util
 import os
 from pathlib import Path
@@ -25,11 +26,20 @@ def run(method, step, times, final_E=1e-5, train_time=None):
     1.5e-4 (None: not reached)."""
     pf, t3, t4 = times
     last = max([t for t in times if t is not None], default=10.0)
-    return {"status": "ok", "method": method, "step": step, "description": method, "setup_time": 0.0,
-            "train_time": train_time or last, "eval_time": 0.0,
-            "time_to": {"0.001": t3, "0.00015": t4}, "time_to_including_setup": {"0.001": t3, "0.00015": t4},
-            "time_to_paper_final_E": pf, "time_to_paper_final_E_including_setup": pf,
-            "final": {"E": final_E, "E_boundary": 0.0, "value_max_error": 1e-2, "policy_max_error": 1e-2}}
+    return {
+        "status": "ok",
+        "method": method,
+        "step": step,
+        "description": method,
+        "setup_time": 0.0,
+        "train_time": train_time or last,
+        "eval_time": 0.0,
+        "time_to": {"0.001": t3, "0.00015": t4},
+        "time_to_including_setup": {"0.001": t3, "0.00015": t4},
+        "time_to_paper_final_E": pf,
+        "time_to_paper_final_E_including_setup": pf,
+        "final": {"E": final_E, "E_boundary": 0.0, "value_max_error": 1e-2, "policy_max_error": 1e-2},
+    }
 
 
 def test_chain_lengths_divide_the_horizon(speed):
@@ -43,17 +53,24 @@ def test_chain_lengths_divide_the_horizon(speed):
 
 def test_plan_runs_every_chain_method_once_per_step(speed):
     plan = speed.variants(["deepxde", "default", "paper", "deepxde-chain-small"], [0.5, 2.0])
-    assert plan == [("paper", "paper", 0.5), ("default@0.5", "default", 0.5), ("default@2", "default", 2.0),
-                    ("deepxde", "deepxde", None), ("deepxde-chain-small@0.5", "deepxde-chain-small", 0.5),
-                    ("deepxde-chain-small@2", "deepxde-chain-small", 2.0)]
+    assert plan == [
+        ("paper", "paper", 0.5),
+        ("default@0.5", "default", 0.5),
+        ("default@2", "default", 2.0),
+        ("deepxde", "deepxde", None),
+        ("deepxde-chain-small@0.5", "deepxde-chain-small", 0.5),
+        ("deepxde-chain-small@2", "deepxde-chain-small", 2.0),
+    ]
     assert "one stage [0, 4]" in speed.describe("default", 4.0)
     assert "chain 1 -> 4 in 1 s steps" in speed.describe("deepxde-chain", 1.0)
 
 
 def test_best_run_is_the_first_to_reach_the_target(speed):
-    methods = {"default@0.5": run("default", 0.5, (40.0, 40.0, 50.0)),
-               "default@2": run("default", 2.0, (20.0, 20.0, 20.0)),
-               "default@1": run("default", 1.0, (None, None, None), train_time=99.0)}
+    methods = {
+        "default@0.5": run("default", 0.5, (40.0, 40.0, 50.0)),
+        "default@2": run("default", 2.0, (20.0, 20.0, 20.0)),
+        "default@1": run("default", 1.0, (None, None, None), train_time=99.0),
+    }
     to_pf = lambda d: d["time_to_paper_final_E"]  # noqa: E731
     assert speed.best_run(methods, "default", to_pf) == ("default@2", 20.0)
     never = {"x@0.5": run("x", 0.5, (None,) * 3, train_time=5.0), "x@1": run("x", 1.0, (None,) * 3, train_time=9.0)}
@@ -66,13 +83,15 @@ def goal_lines(speed, methods, pf):
 
 
 def test_goal_compares_every_method_at_its_best_step(speed):
-    methods = {"paper": run("paper", 0.5, (240.0, 360.0, None), train_time=480.0),
-               "default@0.5": run("default", 0.5, (45.0, 45.0, 52.0)),
-               "default@2": run("default", 2.0, (21.0, 21.0, 21.0)),
-               "deepxde": run("deepxde", None, (None, None, None), train_time=316.0),
-               "deepxde-chain-small@0.5": run("deepxde-chain-small", 0.5, (47.0, 47.0, 63.0)),
-               "deepxde-chain-small@1": run("deepxde-chain-small", 1.0, (30.0, 30.0, 40.0)),
-               "deepxde-chain-small@2": run("deepxde-chain-small", 2.0, (None, None, None), train_time=18.0)}
+    methods = {
+        "paper": run("paper", 0.5, (240.0, 360.0, None), train_time=480.0),
+        "default@0.5": run("default", 0.5, (45.0, 45.0, 52.0)),
+        "default@2": run("default", 2.0, (21.0, 21.0, 21.0)),
+        "deepxde": run("deepxde", None, (None, None, None), train_time=316.0),
+        "deepxde-chain-small@0.5": run("deepxde-chain-small", 0.5, (47.0, 47.0, 63.0)),
+        "deepxde-chain-small@1": run("deepxde-chain-small", 1.0, (30.0, 30.0, 40.0)),
+        "deepxde-chain-small@2": run("deepxde-chain-small", 2.0, (None, None, None), train_time=18.0),
+    }
     lines = goal_lines(speed, methods, 1.4e-3)
     text = "\n".join(lines)
     assert "after 21.0 s of training (best: default@2)" in lines[0]
@@ -91,9 +110,11 @@ def test_goal_compares_every_method_at_its_best_step(speed):
 
 
 def test_best_step_table_gives_each_target_its_own_best_run(speed):
-    methods = {"default@0.5": run("default", 0.5, (45.0, 45.0, 52.0)),
-               "default@2": run("default", 2.0, (21.0, 21.0, 60.0)),
-               "deepxde-chain-small@1": run("deepxde-chain-small", 1.0, (30.0, 30.0, None))}
+    methods = {
+        "default@0.5": run("default", 0.5, (45.0, 45.0, 52.0)),
+        "default@2": run("default", 2.0, (21.0, 21.0, 60.0)),
+        "deepxde-chain-small@1": run("deepxde-chain-small", 1.0, (30.0, 30.0, None)),
+    }
     best = speed.best_steps(methods, 1.4e-3)
     assert best["0.00015"]["default"] == {"run": "default@0.5", "time": 52.0}
     assert best["0.00015"]["deepxde-chain-small"] == {"run": "deepxde-chain-small@1", "time": None}
@@ -106,9 +127,20 @@ def test_best_step_table_gives_each_target_its_own_best_run(speed):
 
 def test_tables_of_an_interrupted_run_say_so(speed, tmp_path):
     """The tables are rewritten after every run; until the last one they carry how many of the planned runs ran."""
-    meta = {"budget_scale": 1.0, "steps": [2.0], "machine": "m", "torch": "t", "threads": 2, "deepxde": "d",
-            "pinnhjb": "p", "seed": 0, "paper_stage_seconds": 60.0, "created": "now", "checkpoint_every": 500,
-            "lbfgs_checkpoint_every": 100}
+    meta = {
+        "budget_scale": 1.0,
+        "steps": [2.0],
+        "machine": "m",
+        "torch": "t",
+        "threads": 2,
+        "deepxde": "d",
+        "pinnhjb": "p",
+        "seed": 0,
+        "paper_stage_seconds": 60.0,
+        "created": "now",
+        "checkpoint_every": 500,
+        "lbfgs_checkpoint_every": 100,
+    }
     summary = {"paper_final_E": None, "methods": {"default@2": run("default", 2.0, (5.0, 5.0, 5.0))}, "best": {}}
     speed.write_tables(summary, {**meta, "runs_done": 1, "runs_planned": 3}, tmp_path)
     assert "Interrupted: 1 of 3 planned runs done" in (tmp_path / "speed.md").read_text()
@@ -150,13 +182,20 @@ def test_timed_measure_is_the_solvers_public_evaluation_hook(speed):
     system = ph.systems.quartic()
     torch.manual_seed(0)
     model = FiniteHorizonValue(2, 0.5, system.train_domain, ZeroTerminalCost(), width=4, depth=1).double()
-    sol = ph.FiniteHorizonSolution(system, ph.TrainConfig.preset("default"),
-                                   [Stage(model.requires_grad_(False), 0.0, TrainHistory(), 0)], {"kind": "zero"})
+    sol = ph.FiniteHorizonSolution(
+        system,
+        ph.TrainConfig.preset("default"),
+        [Stage(model.requires_grad_(False), 0.0, TrainHistory(), 0)],
+        {"kind": "zero"},
+    )
     hook = speed.TimedMeasure(system)
     out = hook(sol)
     assert out == speed.measure(system, speed.chain_value_fn(sol)) and hook.eval_time > 0.0
     assert {"E", "E_boundary", "value_max_error", "policy_max_error"} <= set(out)
     assert out["E"] == sol.evaluate(101)["E"]  # the same E as the package's own evaluation on the 101 x 101 grid
     # the package's solver is used as it is, not subclassed to override a private method
-    assert not any(isinstance(v, type) and issubclass(v, ph.FiniteHorizonSolver) for v in vars(speed).values()
-                   if v is not ph.FiniteHorizonSolver)
+    assert not any(
+        isinstance(v, type) and issubclass(v, ph.FiniteHorizonSolver)
+        for v in vars(speed).values()
+        if v is not ph.FiniteHorizonSolver
+    )

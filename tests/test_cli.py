@@ -1,4 +1,5 @@
 """Command line: ``python -m pinnhjb train|evaluate``, called in-process through ``pinnhjb.cli.main``."""
+
 from __future__ import annotations
 
 import contextlib
@@ -13,8 +14,19 @@ import torch
 import pinnhjb as ph
 from pinnhjb import cli
 
-TRAIN = ["--preset", "quick", "--set", "adam_steps=20", "--set", "lbfgs_steps=0", "--set", "eval_points_per_dim=11",
-         "--device", "cpu", "--no-progress"]
+TRAIN = [
+    "--preset",
+    "quick",
+    "--set",
+    "adam_steps=20",
+    "--set",
+    "lbfgs_steps=0",
+    "--set",
+    "eval_points_per_dim=11",
+    "--device",
+    "cpu",
+    "--no-progress",
+]
 
 
 def run(argv) -> int:
@@ -35,8 +47,23 @@ def trained(tmp_path_factory):
     path = tmp_path_factory.mktemp("cli") / "pendulum.pt"
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        rc = cli.main(["train", "pendulum", "--horizon", "0.5", "--extend-to", "1.0", "--step", "0.5",
-                       "--seed", "3", "--out", str(path), *TRAIN])
+        rc = cli.main(
+            [
+                "train",
+                "pendulum",
+                "--horizon",
+                "0.5",
+                "--extend-to",
+                "1.0",
+                "--step",
+                "0.5",
+                "--seed",
+                "3",
+                "--out",
+                str(path),
+                *TRAIN,
+            ]
+        )
     return rc, out.getvalue(), path
 
 
@@ -60,7 +87,7 @@ def test_evaluate_prints_E(trained, capsys):
     assert run(["evaluate", str(path), "--points-per-dim", "11", "--device", "cpu", "--json"]) == 0
     out = capsys.readouterr().out
     assert f"{path}: system pendulum, T = 1" in out
-    report = json.loads(out[out.index("{"):])
+    report = json.loads(out[out.index("{") :])
     assert report["stored"] == ph.load(path).metrics
     assert report["metrics"]["E"] >= 0 and set(report["metrics"]) >= {"E", "E_flow", "E_boundary", "E_zero"}
 
@@ -84,18 +111,21 @@ def test_train_with_system_parameter(tmp_path):
     assert ph.load(path).system.params == {"R": 2.0}
 
 
-@pytest.mark.parametrize("argv", [
-    ["train", "pendulum", "--param", "R", "--out", "unused.pt"],          # not KEY=VALUE
-    ["train", "pendulum", "--set", "adam_steps", "--out", "unused.pt"],   # not KEY=VALUE
-    ["train", "nope", "--out", "unused.pt"],                              # unknown system
-    ["train", "lq", "--out", "unused.pt"],                                # needs matrices: not offered
-    ["train", "pendulum", "--preset", "fastest", "--out", "unused.pt"],   # unknown preset
-    ["train", "pendulum", "--param", "R=-1", "--out", "unused.pt"],       # R not positive definite
-    ["train", "pendulum", "--set", "width=0", "--out", "unused.pt"],      # invalid TrainConfig value
-    ["train", "pendulum", "--horizon", "0", "--out", "unused.pt", *TRAIN],
-    ["train", "pendulum"],                                                # --out is required
-    ["frobnicate"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "pendulum", "--param", "R", "--out", "unused.pt"],  # not KEY=VALUE
+        ["train", "pendulum", "--set", "adam_steps", "--out", "unused.pt"],  # not KEY=VALUE
+        ["train", "nope", "--out", "unused.pt"],  # unknown system
+        ["train", "lq", "--out", "unused.pt"],  # needs matrices: not offered
+        ["train", "pendulum", "--preset", "fastest", "--out", "unused.pt"],  # unknown preset
+        ["train", "pendulum", "--param", "R=-1", "--out", "unused.pt"],  # R not positive definite
+        ["train", "pendulum", "--set", "width=0", "--out", "unused.pt"],  # invalid TrainConfig value
+        ["train", "pendulum", "--horizon", "0", "--out", "unused.pt", *TRAIN],
+        ["train", "pendulum"],  # --out is required
+        ["frobnicate"],
+    ],
+)
 def test_bad_arguments_give_nonzero_return_code(argv, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert run(argv) != 0
@@ -112,12 +142,18 @@ def test_evaluate_missing_or_corrupt_checkpoint(tmp_path, capsys):
     assert "not a readable pinnhjb checkpoint" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("extra", [
-    pytest.param(["--param", "mass=2"], id="unknown-param-key"),
-    pytest.param(["--set", "momentum=0.9"], id="unknown-set-field"),
-    pytest.param(["--device", "cuda"], id="cuda-unavailable",
-                 marks=[pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")]),
-])
+@pytest.mark.parametrize(
+    "extra",
+    [
+        pytest.param(["--param", "mass=2"], id="unknown-param-key"),
+        pytest.param(["--set", "momentum=0.9"], id="unknown-set-field"),
+        pytest.param(
+            ["--device", "cuda"],
+            id="cuda-unavailable",
+            marks=[pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")],
+        ),
+    ],
+)
 def test_user_errors_are_reported_cleanly(extra, tmp_path, capsys):
     assert cli.main(["train", "pendulum", "--out", str(tmp_path / "x.pt"), *TRAIN, *extra]) == 2
     assert capsys.readouterr().err.startswith("error: ")

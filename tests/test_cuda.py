@@ -1,5 +1,6 @@
 """The package on a GPU: the same calls train and evaluate on CUDA, give what the CPU gives for the same seed, and
 a checkpoint written there loads on the CPU. Skipped where CUDA is absent (CI); run on a machine with a GPU."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,8 +13,16 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUD
 
 # 8 x 2 network; Levenberg-Marquardt in float64 on a fixed number of steps (no stall rule: both devices do the
 # same iterations), and the first-order path in float32
-LM = dict(width=8, depth=2, lm_steps=8, lm_points=200, lm_points_coarse=None, lm_min_progress=None,
-          eval_points_per_dim=11, pool_size=2000)
+LM = dict(
+    width=8,
+    depth=2,
+    lm_steps=8,
+    lm_points=200,
+    lm_points_coarse=None,
+    lm_min_progress=None,
+    eval_points_per_dim=11,
+    pool_size=2000,
+)
 ADAM = dict(width=16, depth=2, adam_steps=40, lbfgs_steps=5, batch_size=128, eval_points_per_dim=11, pool_size=2000)
 
 
@@ -23,8 +32,9 @@ def x_test():
 
 
 def _both(system, config, horizon=1.0):
-    return [ph.FiniteHorizonSolver(system, config, seed=3, device=d, progress=False).solve(horizon)
-            for d in ("cpu", "cuda")]
+    return [
+        ph.FiniteHorizonSolver(system, config, seed=3, device=d, progress=False).solve(horizon) for d in ("cpu", "cuda")
+    ]
 
 
 def test_default_device_is_cuda_when_present():
@@ -54,8 +64,7 @@ def test_first_order_recipes_on_cuda_train_and_evaluate(preset, x_test):
 
 
 def test_extension_and_checkpoint_from_cuda_to_cpu(tmp_path, x_test):
-    solver = ph.FiniteHorizonSolver(ph.systems.pendulum(), ph.TrainConfig(**LM), seed=1, device="cuda",
-                                    progress=False)
+    solver = ph.FiniteHorizonSolver(ph.systems.pendulum(), ph.TrainConfig(**LM), seed=1, device="cuda", progress=False)
     sol = solver.extend(solver.solve(0.5), to=1.0)
     path = ph.save(sol, tmp_path / "gpu.pt")
     back = ph.load(path, device="cpu")

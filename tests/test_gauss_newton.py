@@ -1,4 +1,5 @@
 """Levenberg-Marquardt (pinnhjb.gauss_newton) and the default recipe that uses it."""
+
 from __future__ import annotations
 
 import pytest
@@ -8,8 +9,9 @@ import pinnhjb as ph
 from pinnhjb.gauss_newton import FlatParameters, levenberg_marquardt
 
 # 8 x 2 on (x, t): 113 weights; the coarse level's 60 points are fewer (the dual solve), lm_points more
-TINY_LM = dict(width=8, depth=2, lm_steps=12, lm_points=200, lm_points_coarse=60, eval_points_per_dim=11,
-               pool_size=2000)
+TINY_LM = dict(
+    width=8, depth=2, lm_steps=12, lm_points=200, lm_points_coarse=60, eval_points_per_dim=11, pool_size=2000
+)
 
 
 def _linear_problem(n_points: int, n_params: int, seed: int = 0):
@@ -41,14 +43,22 @@ def test_linear_least_squares_reaches_the_minimum_norm_solution(n_points, n_para
 
 def test_rejected_steps_raise_the_damping_and_never_raise_the_loss():
     """A nonlinear residual (Rosenbrock as least squares): every accepted step lowers the loss on its batch."""
+
     def point_residual(theta, w, c):
         return w[0] * (theta[1] - theta[0] ** 2) * c + w[1] * (1 - theta[0])
 
     W = torch.tensor([[10.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
     C = torch.ones(2, dtype=torch.float64)
     losses = []
-    res = levenberg_marquardt(torch.tensor([-1.2, 1.0], dtype=torch.float64), point_residual, lambda n: (W, C),
-                              steps=60, points=2, damping=1.0, on_step=lambda k, loss, lam: losses.append(loss))
+    res = levenberg_marquardt(
+        torch.tensor([-1.2, 1.0], dtype=torch.float64),
+        point_residual,
+        lambda n: (W, C),
+        steps=60,
+        points=2,
+        damping=1.0,
+        on_step=lambda k, loss, lam: losses.append(loss),
+    )
     assert all(b <= a for a, b in zip(losses, losses[1:]))
     assert torch.allclose(res.theta, torch.ones(2, dtype=torch.float64), atol=1e-6)
 
@@ -58,8 +68,9 @@ def test_stall_rule_stops_a_run_that_makes_no_progress():
     exact = torch.linalg.lstsq(A, b).solution
     res = levenberg_marquardt(exact, point_residual, sample, steps=500, points=40, min_progress=2.0, window=5)
     assert res.stop_reason == "stalled" and res.steps == 15  # three windows of five, no progress after the first
-    longer = levenberg_marquardt(exact, point_residual, sample, steps=500, points=40, min_progress=2.0, window=5,
-                                 stall_windows=3)
+    longer = levenberg_marquardt(
+        exact, point_residual, sample, steps=500, points=40, min_progress=2.0, window=5, stall_windows=3
+    )
     assert longer.stop_reason == "stalled" and longer.steps == 20
     full = levenberg_marquardt(exact, point_residual, sample, steps=25, points=40)
     assert full.steps == 25 and full.stop_reason == "lm_steps"
@@ -76,8 +87,7 @@ def test_a_point_schedule_moves_on_at_each_stall_and_stops_at_the_last():
         sizes.append(n)
         return A[:n], b[:n]
 
-    res = levenberg_marquardt(exact, point_residual, sample, steps=500, points=(20, 30, 40), min_progress=2.0,
-                              window=5)
+    res = levenberg_marquardt(exact, point_residual, sample, steps=500, points=(20, 30, 40), min_progress=2.0, window=5)
     assert res.stop_reason == "stalled" and sizes == [20] * 15 + [30] * 15 + [40] * 15
     sizes.clear()
     levenberg_marquardt(exact, point_residual, sample, steps=10, points=(20, 40))  # no stall rule: no stall

@@ -1,5 +1,6 @@
 """pinnhjb.jacobian.residual_jacobian on its own: shapes and refused input (the residual forms' Jacobians against
 torch.func's vmap(jacrev(...)) are in test_residuals.py)."""
+
 from __future__ import annotations
 
 import pytest

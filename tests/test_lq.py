@@ -1,10 +1,10 @@
 """Tests for pinnhjb.lq: LQ ground truth of the steady-state (eq:HJB) and finite-horizon (eq:HJBT) HJB."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import scipy.linalg as sla
-
 from scipy.integrate import solve_ivp
 
 from pinnhjb import lq
@@ -152,8 +152,12 @@ def test_value_solves_finite_horizon_hjb(name: str) -> None:
     grad = 2 * np.einsum("nij,nj->ni", P, x)  # grad_x V_T
     dVdt = np.einsum("ni,nij,nj->n", x, sol.derivative(t), x)
     G = B @ np.linalg.solve(R, B.T)
-    hjb = dVdt + np.einsum("ni,ni->n", grad, x @ A.T) + np.einsum("ni,ij,nj->n", x, Q, x) \
+    hjb = (
+        dVdt
+        + np.einsum("ni,ni->n", grad, x @ A.T)
+        + np.einsum("ni,ij,nj->n", x, Q, x)
         - 0.25 * np.einsum("ni,ij,nj->n", grad, G, grad)
+    )
     assert np.abs(hjb).max() < 1e-8
 
     # dP/dt from the ODE identity agrees with a central difference of the dense output

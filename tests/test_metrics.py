@@ -1,4 +1,5 @@
 """Metrics: E of eq. (IHJB_res), errors against V*/mu*, and the closed loop (cost of a policy by RK4)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,8 +36,9 @@ def test_closed_loop_with_lqr_policy_costs_x0_P_x0(lq_system):
 
 
 def test_closed_loop_without_control_diverges(lq_system):
-    result = metrics.closed_loop(lq_system, lambda x: torch.zeros(x.shape[0], 1, dtype=x.dtype), X0[:2],
-                                 t_final=5.0, dt=0.01)
+    result = metrics.closed_loop(
+        lq_system, lambda x: torch.zeros(x.shape[0], 1, dtype=x.dtype), X0[:2], t_final=5.0, dt=0.01
+    )
     assert not result.stabilized.any() and result.fraction_stabilized == 0.0
     assert (result.cost > 1e3).all()
 
@@ -62,8 +64,14 @@ def test_closed_loop_checks_arguments(lq_system):
 def test_optimality_errors_of_value_star_vanish(name, lq_system):
     system = lq_system if name == "lq" else ph.systems.quartic()
     errors = metrics.optimality_errors(system, system.value_star)
-    assert set(errors) == {"value_max_error", "value_rmse", "value_mse", "policy_max_error", "policy_rmse",
-                           "policy_mse"}
+    assert set(errors) == {
+        "value_max_error",
+        "value_rmse",
+        "value_mse",
+        "policy_max_error",
+        "policy_rmse",
+        "policy_mse",
+    }
     assert all(v < 1e-12 for v in errors.values())
 
 
@@ -71,8 +79,7 @@ def test_optimality_errors_detect_a_wrong_value(lq_system):
     errors = metrics.optimality_errors(lq_system, lambda x: 1.5 * lq_system.value_star(x), points_per_dim=11)
     grid = lq_system.grid(11)
     assert errors["value_max_error"] == pytest.approx(0.5 * lq_system.value_star(grid).max().item(), rel=1e-12)
-    assert errors["policy_max_error"] == pytest.approx(0.5 * lq_system.policy_star(grid).abs().max().item(),
-                                                       rel=1e-12)
+    assert errors["policy_max_error"] == pytest.approx(0.5 * lq_system.policy_star(grid).abs().max().item(), rel=1e-12)
     assert errors["value_mse"] == pytest.approx(errors["value_rmse"] ** 2, rel=1e-12)
 
 

@@ -1,4 +1,5 @@
 """Helpers the notebooks call: plane slices of a 3-D solution, exact LQ fields."""
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -34,18 +35,19 @@ def test_quadratic_fields_are_exact():
     Q, R = np.eye(2), np.array([[0.3]])
     x = np.random.default_rng(0).normal(size=(6, 2))
     star = ph.metrics.quadratic_fields(A, B, Q, R, ph.lq.care(A, B, Q, R), x)
-    assert np.abs(star["residual"]).max() < 1e-9                      # V* solves the steady-state HJB
+    assert np.abs(star["residual"]).max() < 1e-9  # V* solves the steady-state HJB
     ode = ph.lq.riccati_ode(A, B, Q, R, 1.0)
     fields = ph.metrics.quadratic_fields(A, B, Q, R, ode.at(0.0), x)
     assert np.allclose(fields["policy"], ode.policy(x, 0.0))
     assert np.allclose(fields["value"], ode.value(x, 0.0))
-    dP = ode.derivative(0.0)                                           # E_e(x; V_T(., 0)) = -dV_T/dt at t = 0
+    dP = ode.derivative(0.0)  # E_e(x; V_T(., 0)) = -dV_T/dt at t = 0
     assert np.allclose(fields["residual"], -np.einsum("ni,ij,nj->n", x, dP, x))
 
 
 def test_time_to_accuracy_draws_one_line_per_run_and_the_targets():
-    fig = plots.time_to_accuracy({"a": ([1.0, 5.0, 30.0], [1.0, 1e-2, 1e-5]), "b": ([8.0, 300.0], [0.5, 3e-2])},
-                                 targets={"paper": 1.5e-4})
+    fig = plots.time_to_accuracy(
+        {"a": ([1.0, 5.0, 30.0], [1.0, 1e-2, 1e-5]), "b": ([8.0, 300.0], [0.5, 3e-2])}, targets={"paper": 1.5e-4}
+    )
     ax = fig.axes[0]
     assert ax.get_yscale() == "log" and [line.get_label() for line in ax.lines] == ["a", "b", "paper"]
     assert list(ax.lines[0].get_ydata()) == [1.0, 1e-2, 1e-5] and ax.lines[2].get_ydata()[0] == 1.5e-4

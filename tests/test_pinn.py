@@ -1,13 +1,21 @@
 """Value networks: the hard-constraint ansatz, terminal costs, autograd gradients (the residuals are in
 test_residuals.py)."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from pinnhjb.pinn import (MLP, FiniteHorizonValue, QuadraticTerminalCost, SteadyStateValue, ValueTerminalCost,
-                          ZeroTerminalCost, value_and_gradients)
+from pinnhjb.pinn import (
+    MLP,
+    FiniteHorizonValue,
+    QuadraticTerminalCost,
+    SteadyStateValue,
+    ValueTerminalCost,
+    ZeroTerminalCost,
+    value_and_gradients,
+)
 
 BOX = [[-1.5, 1.5], [-1.0, 2.0]]
 P_PHI = np.array([[2.0, 0.3], [0.3, 1.0]])
@@ -108,8 +116,9 @@ def test_value_and_gradients_match_torch_func_and_finite_differences():
     # central differences in float64 (test-side only)
     h = 1e-6
     with torch.no_grad():
-        fd_x = torch.stack([(model(x + h * e, t) - model(x - h * e, t)) / (2 * h)
-                            for e in torch.eye(2, dtype=torch.float64)], dim=-1)
+        fd_x = torch.stack(
+            [(model(x + h * e, t) - model(x - h * e, t)) / (2 * h) for e in torch.eye(2, dtype=torch.float64)], dim=-1
+        )
         fd_t = (model(x, t + h) - model(x, t - h)) / (2 * h)
     np.testing.assert_allclose(gx.numpy(), fd_x.numpy(), atol=1e-7)
     np.testing.assert_allclose(gt.numpy(), fd_t.numpy(), atol=1e-7)

@@ -1,4 +1,5 @@
 """Tests for pinnhjb.reference: open-loop (Pontryagin BVP) reference values of eq. (2) and eq:costT."""
+
 from __future__ import annotations
 
 import math
@@ -13,9 +14,12 @@ from pinnhjb.reference import ReferenceGrid, reference_grid, solve_point
 
 # unstable 2-state, one input; 3-state, two inputs (coupled R)
 LQ2 = (np.array([[1.0, 1.0], [0.0, 2.0]]), np.array([[0.0], [1.0]]), np.eye(2), np.array([[1.0]]))
-LQ3 = (np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 2.0, -3.0]]),
-       np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), np.diag([1.0, 2.0, 0.5]),
-       np.array([[1.0, 0.2], [0.2, 2.0]]))
+LQ3 = (
+    np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 2.0, -3.0]]),
+    np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]),
+    np.diag([1.0, 2.0, 0.5]),
+    np.array([[1.0, 0.2], [0.2, 2.0]]),
+)
 
 
 def _lq_system(A, B, Q, R):
@@ -27,8 +31,9 @@ def quartic():
     return systems.quartic()
 
 
-@pytest.mark.parametrize("x0", [(1.2, 1.2), (-1.2, 1.2), (1.2, -1.2), (-1.2, -1.2), (0.0, 1.2), (0.7, -0.4),
-                                (-0.1, 0.05)])
+@pytest.mark.parametrize(
+    "x0", [(1.2, 1.2), (-1.2, 1.2), (1.2, -1.2), (-1.2, -1.2), (0.0, 1.2), (0.7, -0.4), (-0.1, 0.05)]
+)
 def test_quartic_matches_known_value_and_policy(quartic, x0):
     res = solve_point(quartic, np.array(x0))
     X = torch.tensor([x0], dtype=torch.float64)

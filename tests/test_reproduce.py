@@ -3,6 +3,7 @@
 Every committed checkpoint is re-evaluated: its stored E must still come out of the current code, so a stale
 artifact (trained by older code, or edited by hand) fails here.
 """
+
 import json
 import math
 from pathlib import Path
@@ -22,8 +23,7 @@ CHECKPOINTS = sorted((ARTIFACTS / "checkpoints").glob("*/seed*.pt"))
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("artifacts")
-    result = reproduce.run(out=out, seeds=1, quick=True, only=["pendulum_extension", "quartic_steady"],
-                           progress=False)
+    result = reproduce.run(out=out, seeds=1, quick=True, only=["pendulum_extension", "quartic_steady"], progress=False)
     return out, result
 
 
@@ -133,6 +133,7 @@ def test_the_core_knows_nothing_of_the_paper():
                 names = [a.name for a in node.names]
             else:
                 continue
-            assert not any(n.split(".")[-1] in ("paper", "reproduce", "theorem3") or n.startswith("paper")
-                           for n in names), (path.name, names)
+            assert not any(
+                n.split(".")[-1] in ("paper", "reproduce", "theorem3") or n.startswith("paper") for n in names
+            ), (path.name, names)
     assert not (ROOT / "pinnhjb" / "reproduce.py").exists() and not (ROOT / "pinnhjb" / "theorem3.py").exists()

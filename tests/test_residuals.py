@@ -1,8 +1,8 @@
 """The residual objects of pinnhjb.residuals: F_e, F_b, F_in and E_e on known solutions, their batched, per-point
 and whole-model forms against each other, their structured Jacobians against torch.func's vmap(jacrev(...)), and
 a new PDE form added by one class and a registration line."""
-from __future__ import annotations
 
+from __future__ import annotations
 
 import numpy as np
 import pytest
@@ -31,8 +31,12 @@ def states(count=64, seed=1) -> torch.Tensor:
 
 def batch_of(residual, system, gen, count=N_POINTS, need_phi_grad=True):
     """Cached states and times in the training layout, and the per-point arguments built from them."""
-    pool = training.StatePool(system, system.sample(count, gen, dtype=torch.float64),
-                              getattr(residual.model, "terminal_cost", None), need_phi_grad=need_phi_grad)
+    pool = training.StatePool(
+        system,
+        system.sample(count, gen, dtype=torch.float64),
+        getattr(residual.model, "terminal_cost", None),
+        need_phi_grad=need_phi_grad,
+    )
     data = pool.take(torch.arange(count))
     t = None
     if residual.time_dependent:
@@ -49,9 +53,12 @@ def perturbed(module, gen):
 # ------------------------------------------------------------------------------ F_e, E_e on the LQ ground truth
 EXAMPLES = {
     "2-state": (np.array([[1.0, 1.0], [0.0, 2.0]]), np.array([[0.0], [1.0]]), np.eye(2), np.array([[1.0]])),
-    "3-state-2-inputs": (np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 2.0, -3.0]]),
-                         np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), np.diag([1.0, 2.0, 0.5]),
-                         np.array([[1.0, 0.2], [0.2, 2.0]])),
+    "3-state-2-inputs": (
+        np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 2.0, -3.0]]),
+        np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]),
+        np.diag([1.0, 2.0, 0.5]),
+        np.array([[1.0, 0.2], [0.2, 2.0]]),
+    ),
 }
 
 
@@ -72,8 +79,7 @@ class RiccatiValue(nn.Module):
         t_np = t.detach().numpy()
         P = torch.as_tensor(self.riccati.at(t_np)) + self.shift
         dP = torch.as_tensor(self.riccati.derivative(t_np))
-        return (torch.einsum("bi,bij,bj->b", x, P, x)
-                + (t - t.detach()) * torch.einsum("bi,bij,bj->b", x, dP, x))
+        return torch.einsum("bi,bij,bj->b", x, P, x) + (t - t.detach()) * torch.einsum("bi,bij,bj->b", x, dP, x)
 
 
 @pytest.mark.parametrize("name", EXAMPLES)
@@ -124,10 +130,12 @@ def test_f_e_is_dvdt_plus_min_hamiltonian():
     x = states(20)
     t = torch.full((20,), 0.4, dtype=torch.float64)
     _, gx, gt = value_and_gradients(model, x, t)
-    by_hand = (gt + (gx * system.f(x)).sum(-1) + system.Q(x)
-               - 0.25 * (gx[:, 1] * (81.0 / 16.0)) ** 2)  # g = [0, 1/J]', R = 1
-    np.testing.assert_allclose(FiniteHorizonHJB(system, model).evaluate(x, t).numpy(), by_hand.numpy(), rtol=1e-12,
-                               atol=1e-12)
+    by_hand = (
+        gt + (gx * system.f(x)).sum(-1) + system.Q(x) - 0.25 * (gx[:, 1] * (81.0 / 16.0)) ** 2
+    )  # g = [0, 1/J]', R = 1
+    np.testing.assert_allclose(
+        FiniteHorizonHJB(system, model).evaluate(x, t).numpy(), by_hand.numpy(), rtol=1e-12, atol=1e-12
+    )
 
 
 def test_create_graph_allows_training_through_the_residual():
@@ -146,8 +154,15 @@ def test_create_graph_allows_training_through_the_residual():
 def test_finite_horizon_jacobian_matches_jacrev(system_name, depth, activation):
     gen = torch.Generator().manual_seed(0)
     system = ph.get_system(system_name)
-    model = FiniteHorizonValue(system.n, 1.5, system.train_domain, width=7, depth=depth, activation=activation,
-                               terminal_cost=QuadraticTerminalCost(torch.eye(system.n).numpy() * 0.7)).double()
+    model = FiniteHorizonValue(
+        system.n,
+        1.5,
+        system.train_domain,
+        width=7,
+        depth=depth,
+        activation=activation,
+        terminal_cost=QuadraticTerminalCost(torch.eye(system.n).numpy() * 0.7),
+    ).double()
     res = FiniteHorizonHJB(system, model)
     flat = FlatParameters(model.net)
     theta = perturbed(model.net, gen)
@@ -185,8 +200,10 @@ def test_levenberg_marquardt_takes_the_same_steps_with_either_jacobian():
     pool = res.point_arguments(*batch_of(res, system, gen))
     sample = lambda n: tuple(a[:n] for a in pool)  # noqa: E731 - the same points every iteration
     point = res.point_residual(flat)
-    runs = [levenberg_marquardt(flat.get(), point, sample, steps=6, points=N_POINTS, jacobian=jac)
-            for jac in (None, res.jacobian())]
+    runs = [
+        levenberg_marquardt(flat.get(), point, sample, steps=6, points=N_POINTS, jacobian=jac)
+        for jac in (None, res.jacobian())
+    ]
     assert runs[0].steps == runs[1].steps == 6 and runs[0].rejected == runs[1].rejected
     assert runs[1].loss < 0.5 * float(point(flat.get(), *(a[0] for a in pool)) ** 2 + 1)  # it trained
     assert torch.allclose(runs[0].theta, runs[1].theta, rtol=1e-8, atol=1e-10)
@@ -200,8 +217,9 @@ def test_f_e_batched_per_point_and_whole_model_agree(shared):
     Jacobian's residual and autograd of the whole model are one F_e."""
     gen = torch.Generator().manual_seed(3)
     system = ph.systems.pendulum()
-    model = FiniteHorizonValue(2, 0.8, system.train_domain, QuadraticTerminalCost(np.diag([1.0, 0.5])), width=10,
-                               depth=2).double()
+    model = FiniteHorizonValue(
+        2, 0.8, system.train_domain, QuadraticTerminalCost(np.diag([1.0, 0.5])), width=10, depth=2
+    ).double()
     res = FiniteHorizonHJB(system, model)
     data, t = batch_of(res, system, gen)
     shared_times = None
@@ -313,8 +331,16 @@ def test_a_new_pde_form_is_one_class_and_a_registration_line(monkeypatch):
     x = system.sample(500, gen, dtype=torch.float64)
     t = 0.5 * torch.rand(500, generator=gen, dtype=torch.float64)
     before = float((form.evaluate(x, t) ** 2).mean())
-    cfg = ph.TrainConfig.preset("default", width=8, depth=2, pool_size=2000, lm_steps=40, lm_points=300,
-                                lm_points_coarse=None, lm_min_progress=None)
+    cfg = ph.TrainConfig.preset(
+        "default",
+        width=8,
+        depth=2,
+        pool_size=2000,
+        lm_steps=40,
+        lm_points=300,
+        lm_points_coarse=None,
+        lm_min_progress=None,
+    )
     history = training.train_finite_horizon(system, model, cfg, seed=0, progress=False, residual="uncontrolled_cost")
     after = float((form.evaluate(x, t) ** 2).mean())
     hjb = float((FiniteHorizonHJB(system, model).evaluate(x, t) ** 2).mean())

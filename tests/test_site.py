@@ -37,6 +37,7 @@ A full-page screenshot of every page at both sizes goes to ``_build/screenshots/
 ``bash scripts/build_book.sh`` (``scripts/test.sh`` does it). ``PINNHJB_SITE`` points the test at another
 built site (e.g. a quick build without notebook execution).
 """
+
 from __future__ import annotations
 
 import functools
@@ -55,9 +56,16 @@ ROOT = Path(__file__).resolve().parents[1]
 SITE = Path(os.environ.get("PINNHJB_SITE", ROOT / "_build" / "html"))  # the built site (override for a copy)
 SHOTS = SITE.parent / "screenshots"
 REQUIRE = os.environ.get("PINNHJB_REQUIRE_SITE") == "1"
-CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                  "--disable-component-update", "--disable-sync", "--no-first-run",
-                  "--disable-default-apps", "--disable-extensions"]
+CHROMIUM_FLAGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-default-apps",
+    "--disable-extensions",
+]
 EXPLORER_MARK = 'class="pinnhjb-explorer"'
 WIDGET_VIEW_MARK = "application/vnd.jupyter.widget-view+json"
 WIDGET_STATE_MARK = "application/vnd.jupyter.widget-state+json"
@@ -69,7 +77,8 @@ MIN_DRAWER_LINKS = 3  # an open navigation drawer shows at least this many reach
 # inputs, inline code and MathJax's output; ROLE_KEY only in prose (printed outputs hold e.g. "[nan]").
 RAW_LABEL_PATTERNS = {
     "a MyST role left as text": re.compile(
-        r"\{(?:eq|cite(?::[a-z]+)?|ref|numref|doc|prf:[a-z]+|term|download|glue(?::[a-z]+)?)\}"),
+        r"\{(?:eq|cite(?::[a-z]+)?|ref|numref|doc|prf:[a-z]+|term|download|glue(?::[a-z]+)?)\}"
+    ),
     "an equation named by its label": re.compile(r"\beqs?\.\s*\((?=[^)\s]*[A-Za-z])[\w:.-]+\)"),
     "a label in parentheses": re.compile(r"\((?=[\w-]*[A-Za-z])[A-Za-z0-9]+_[\w-]+\)"),
     "an eq- label": re.compile(r"(?<![\w-])eq-[\w-]+"),
@@ -86,8 +95,12 @@ def _missing(reason: str):
 
 
 def _chromium() -> str | None:
-    for cand in (os.environ.get("PINNHJB_CHROMIUM"), "/usr/bin/chromium", shutil.which("chromium"),
-                 shutil.which("chromium-browser")):
+    for cand in (
+        os.environ.get("PINNHJB_CHROMIUM"),
+        "/usr/bin/chromium",
+        shutil.which("chromium"),
+        shutil.which("chromium-browser"),
+    ):
         if cand and Path(cand).is_file() and os.access(cand, os.X_OK):
             return cand
     return None
@@ -95,8 +108,9 @@ def _chromium() -> str | None:
 
 def _content_pages() -> list[Path]:
     """Every page of the book itself (not the search/genindex pages or the redirecting index)."""
-    return sorted(p for p in SITE.rglob("*.html")
-                  if p.parent != SITE and not p.relative_to(SITE).parts[0].startswith("_"))
+    return sorted(
+        p for p in SITE.rglob("*.html") if p.parent != SITE and not p.relative_to(SITE).parts[0].startswith("_")
+    )
 
 
 def _rel(p: Path) -> str:
@@ -112,9 +126,12 @@ def _theory_pages() -> set[str]:
     import yaml  # PyYAML comes with Jupyter Book
 
     toc = yaml.safe_load((ROOT / "_toc.yml").read_text(encoding="utf-8"))
-    pages = {Path(ch["file"]).with_suffix(".html").as_posix()
-             for part in toc.get("parts", []) if "theory" in str(part.get("caption", "")).lower()
-             for ch in part.get("chapters", [])}
+    pages = {
+        Path(ch["file"]).with_suffix(".html").as_posix()
+        for part in toc.get("parts", [])
+        if "theory" in str(part.get("caption", "")).lower()
+        for ch in part.get("chapters", [])
+    }
     return pages or {r for r in map(_rel, _content_pages()) if r.startswith("book/")}
 
 
@@ -182,8 +199,11 @@ class _Visit:
         page.on("console", lambda m: self.errors.append(f"console error: {m.text}") if m.type == "error" else None)
         page.on("pageerror", lambda e: self.errors.append(f"page error: {e}"))
         page.goto(f"{server}/{rel}", wait_until="load")
-        redirect = re.search(r'http-equiv="Refresh" content="0; url=([^"]+)"',
-                             (SITE / rel.split("?")[0]).read_text(encoding="utf-8"), re.IGNORECASE)
+        redirect = re.search(
+            r'http-equiv="Refresh" content="0; url=([^"]+)"',
+            (SITE / rel.split("?")[0]).read_text(encoding="utf-8"),
+            re.IGNORECASE,
+        )
         if redirect:  # Jupyter Book's index.html only redirects to the root page: check where it lands
             page.wait_for_url(f"**/{redirect.group(1)}", wait_until="load")
         page.evaluate("() => window.scrollTo(0, document.body.scrollHeight)")  # anything loaded lazily, too
@@ -191,8 +211,11 @@ class _Visit:
         page.evaluate("() => window.scrollTo(0, 0)")
 
     def external_requests(self) -> list[str]:
-        return [u for u in self.requests if urlparse(u).scheme in ("http", "https", "ws", "wss")
-                and urlparse(u).netloc != self.host]
+        return [
+            u
+            for u in self.requests
+            if urlparse(u).scheme in ("http", "https", "ws", "wss") and urlparse(u).netloc != self.host
+        ]
 
     def close(self):
         self.context.close()
@@ -203,8 +226,7 @@ def _wait_for_math(page) -> bool:
     if not page.evaluate("() => document.querySelector('.math') !== null"):
         return False
     try:
-        page.wait_for_function("() => window.MathJax && MathJax.startup && MathJax.startup.promise",
-                               timeout=30_000)
+        page.wait_for_function("() => window.MathJax && MathJax.startup && MathJax.startup.promise", timeout=30_000)
     except Exception as exc:  # playwright's TimeoutError
         raise AssertionError(f"{page.url}: the page has math but MathJax never started") from exc
     page.evaluate("() => MathJax.startup.promise")
@@ -230,7 +252,8 @@ _IMAGES_BROKEN = """() => Array.from(document.images)
     .filter(im => !(im.complete && im.naturalWidth > 0))
     .map(im => (im.currentSrc || im.src).slice(-80))"""
 
-_VISIBLE_TEXT = """() => {
+_VISIBLE_TEXT = (
+    """() => {
     const shown = (%s);
     const prose = [], outputs = [];
     const walk = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
@@ -243,9 +266,12 @@ _VISIBLE_TEXT = """() => {
         (el.closest('pre') ? outputs : prose).push(n.textContent);
     }
     return {prose: prose.join(' '), outputs: outputs.join(' ')};
-}""" % _IS_SHOWN
+}"""
+    % _IS_SHOWN
+)
 
-_CODE_SCROLLING = """() => {
+_CODE_SCROLLING = (
+    """() => {
     const shown = (%s);
     // code the reader is meant to read: cell inputs and code blocks of the text, not printed outputs
     const blocks = Array.from(document.querySelectorAll('div.cell_input pre, div.highlight pre'))
@@ -261,9 +287,12 @@ _CODE_SCROLLING = """() => {
             return {over: pre.scrollWidth - pre.clientWidth, width: pre.clientWidth, where,
                     line: longest.trim().slice(0, 60), chars: longest.length};
         });
-}""" % _IS_SHOWN
+}"""
+    % _IS_SHOWN
+)
 
-_FIGURES = """() => {
+_FIGURES = (
+    """() => {
     const shown = (%s);
     return Array.from(document.querySelectorAll(
             'div.cell_output img, figure img, div.figure img, .pinnhjb-explorer img'))
@@ -282,7 +311,9 @@ _FIGURES = """() => {
                     explorer: !!im.closest('.pinnhjb-explorer'),
                     name: label.trim().slice(0, 70)};
         });
-}""" % _IS_SHOWN
+}"""
+    % _IS_SHOWN
+)
 
 _OVERFLOW = """() => {
     const W = innerWidth, out = [];
@@ -302,7 +333,8 @@ _OVERFLOW = """() => {
     return {scroll: document.scrollingElement.scrollWidth, width: W, culprits: out.slice(0, 6)};
 }"""
 
-_CUT = """() => {
+_CUT = (
+    """() => {
     const shown = (%s), out = [];
     const name = el => el.tagName.toLowerCase() + (el.getAttribute('display') ? '[display]' : '') +
         (el.closest('.cell') ? ' in a cell' : '') + ': ' + (el.textContent || el.alt || '').trim().slice(0, 40);
@@ -324,14 +356,19 @@ _CUT = """() => {
         }
     }
     return out;
-}""" % _IS_SHOWN
+}"""
+    % _IS_SHOWN
+)
 
-_SEARCH_BOXES = """() => {
+_SEARCH_BOXES = (
+    """() => {
     const shown = (%s);
     return Array.from(document.querySelectorAll('.search-button-field, .search-button, form.bd-search'))
         .filter(el => !el.closest('dialog:not([open])') && shown(el)
                       && el.getBoundingClientRect().width > 0).map(el => el.className);
-}""" % _IS_SHOWN
+}"""
+    % _IS_SHOWN
+)
 
 _NAV_LINKS = """() => Array.from(document.querySelectorAll(
         '#pst-primary-sidebar-modal a[href], .bd-sidebar-primary a[href]'))
@@ -345,7 +382,8 @@ _NAV_LINKS = """() => Array.from(document.querySelectorAll(
     }).map(a => a.textContent.trim())"""
 
 _TOC_LINKS = _NAV_LINKS.replace("#pst-primary-sidebar-modal", "#pst-secondary-sidebar-modal").replace(
-    ".bd-sidebar-primary", ".bd-sidebar-secondary")
+    ".bd-sidebar-primary", ".bd-sidebar-secondary"
+)
 
 _LINKS = """() => Array.from(document.querySelectorAll('article.bd-article a[href]'))
     .filter(a => !a.closest('.prev-next-area, .bd-footer-article, nav'))
@@ -381,10 +419,15 @@ def _move_sliders(page, where: str, problems: list[str]) -> int:
         after = ex.evaluate(state)
         if after["value"] == before["value"]:
             problems.append(f"{where}: explorer {k + 1}: the slider did not move")
-        elif not (len(after["shown"]) == 1 and after["shown"] != before["shown"]
-                  and after["src"] != before["src"] and after["width"] > 0):
-            problems.append(f"{where}: explorer {k + 1}: moving the slider did not change the frame "
-                            f"({before} -> {after})")
+        elif not (
+            len(after["shown"]) == 1
+            and after["shown"] != before["shown"]
+            and after["src"] != before["src"]
+            and after["width"] > 0
+        ):
+            problems.append(
+                f"{where}: explorer {k + 1}: moving the slider did not change the frame ({before} -> {after})"
+            )
         elif after["label"] == before["label"]:
             problems.append(f"{where}: explorer {k + 1}: the value label did not change")
     return n
@@ -414,8 +457,10 @@ def _check_drawer(page, where: str, size: str, problems: list[str]):
         buttons.first.click()
         opened = _nav_links_when(page, opened=True)
         if len(opened) < MIN_DRAWER_LINKS:
-            problems.append(f"{where}: pressing the menu button shows {len(opened)} navigation links "
-                            f"(want >= {MIN_DRAWER_LINKS}): {opened}")
+            problems.append(
+                f"{where}: pressing the menu button shows {len(opened)} navigation links "
+                f"(want >= {MIN_DRAWER_LINKS}): {opened}"
+            )
             return
         page.keyboard.press("Escape")
         if _nav_links_when(page, opened=False):
@@ -438,8 +483,10 @@ def _check_drawer(page, where: str, size: str, problems: list[str]):
         buttons.first.click()
         shown = _nav_links_when(page, opened=True)
         if hidden or len(shown) < MIN_DRAWER_LINKS:
-            problems.append(f"{where}: the menu button does not hide and show the sidebar "
-                            f"({len(closed)} -> {len(hidden)} -> {len(shown)} links)")
+            problems.append(
+                f"{where}: the menu button does not hide and show the sidebar "
+                f"({len(closed)} -> {len(hidden)} -> {len(shown)} links)"
+            )
 
 
 def _sweep_one(v: _Visit, found: dict, theory: set[str]):
@@ -473,17 +520,21 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
         if fig["height"] > 0 and fig["nh"] > 0:
             aspect, natural = fig["shown"] / fig["height"], fig["nw"] / fig["nh"]
             if abs(aspect / natural - 1) > 0.03:
-                found["aspect"].append(f"{where}: '{fig['name']}' is drawn at aspect {aspect:.2f}, "
-                                       f"its image has {natural:.2f}")
+                found["aspect"].append(
+                    f"{where}: '{fig['name']}' is drawn at aspect {aspect:.2f}, its image has {natural:.2f}"
+                )
         if fig["shown"] < MIN_FIGURE_SCALE * fig["intended"]:
             kind = "explorer frame" if fig["explorer"] else "figure"
             found["figures"].append(
                 f"{where}: {kind} '{fig['name']}' shows at {fig['shown']:.0f} of {fig['intended']:.0f} px "
-                f"({fig['shown'] / fig['intended']:.2f}x; natural width {fig['nw']} px)")
+                f"({fig['shown'] / fig['intended']:.2f}x; natural width {fig['nw']} px)"
+            )
 
     for c in page.evaluate(_CODE_SCROLLING):
-        found["code"].append(f"{where}: {c['where']} scrolls {c['over']} px in a {c['width']} px box; "
-                             f"longest line ({c['chars']} chars): {c['line']!r}")
+        found["code"].append(
+            f"{where}: {c['where']} scrolls {c['over']} px in a {c['width']} px box; "
+            f"longest line ({c['chars']} chars): {c['line']!r}"
+        )
 
     text = page.evaluate(_VISIBLE_TEXT)
     for label, pattern in RAW_LABEL_PATTERNS.items():
@@ -501,8 +552,10 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
 
     over = page.evaluate(_OVERFLOW)
     if over["scroll"] > over["width"] + 1:
-        found["overflow"].append(f"{where}: the page is {over['scroll']} px wide in a {over['width']} px window; "
-                                 f"sticking out: {over['culprits']}")
+        found["overflow"].append(
+            f"{where}: the page is {over['scroll']} px wide in a {over['width']} px window; "
+            f"sticking out: {over['culprits']}"
+        )
     for c in page.evaluate(_CUT):
         found["cut"].append(f"{where}: {c}")
 
@@ -524,8 +577,9 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
     if len(v.failures) > n_failed:  # anything the interaction requested
         found["requests"].append(f"{where}: failed requests after interaction: {v.failures[n_failed:][:5]}")
     if v.external_requests() != external:
-        found["requests"].append(f"{where}: requests left the machine after interaction: "
-                                 f"{v.external_requests()[len(external):][:5]}")
+        found["requests"].append(
+            f"{where}: requests left the machine after interaction: {v.external_requests()[len(external) :][:5]}"
+        )
     found["console"].extend(f"{where}: {e}" for e in v.errors)
 
 
@@ -556,12 +610,14 @@ def _report(found, key: str, what: str):
 
 # --- static checks of the built files -----------------------------------------------------------------------
 
+
 def test_site_built_and_has_explorers():
     if not (SITE / "index.html").is_file():
         _missing(f"no built site at {SITE} (run: bash scripts/build_book.sh)")
     pages = _content_pages()
-    assert any(p.relative_to(SITE).parts[0] == "notebooks" and _has_explorer(_rel(p)) for p in pages), \
+    assert any(p.relative_to(SITE).parts[0] == "notebooks" and _has_explorer(_rel(p)) for p in pages), (
         "no page with an explorer slider in the built site"
+    )
     for p in pages:  # the offline site references no CDN in any page
         html = p.read_text(encoding="utf-8")
         ext = re.findall(r'<(?:script|link|img|iframe)[^>]+(?:src|href)="(https?://[^"]+)"', html)
@@ -602,10 +658,12 @@ def test_site_has_what_readers_expect():
 
 # --- the browser sweep --------------------------------------------------------------------------------------
 
+
 def test_every_page_swept(sweep):
     _report(sweep, "sweep", "pages that broke the sweep")
-    assert any(p.startswith("notebooks/") for p in sweep["pages"]) and any(p.startswith("book/")
-                                                                            for p in sweep["pages"])
+    assert any(p.startswith("notebooks/") for p in sweep["pages"]) and any(
+        p.startswith("book/") for p in sweep["pages"]
+    )
 
 
 def test_math_rendered(sweep):
@@ -651,8 +709,9 @@ def test_figures_keep_their_aspect_ratio(sweep):
 
 
 def test_screenshots_of_every_page(sweep):
-    missing = [f"{rel} [{size}]" for rel in sweep["pages"] for size in SIZES
-               if not (SHOTS / _shot_name(rel, size)).is_file()]
+    missing = [
+        f"{rel} [{size}]" for rel in sweep["pages"] for size in SIZES if not (SHOTS / _shot_name(rel, size)).is_file()
+    ]
     assert not missing, f"no screenshot under {SHOTS} for: {missing}"
 
 
@@ -675,6 +734,7 @@ def test_every_chapter_links_to_its_theory(sweep):
 
 # --- the index redirect and the search page -----------------------------------------------------------------
 
+
 def test_index_redirects_to_the_root_page(server, browser):
     v = _Visit(browser, server, "index.html", "desktop")
     try:
@@ -689,8 +749,7 @@ def test_search_works_offline(server, browser):
     """The search page finds a word of the book with the site's own index, with no console errors."""
     v = _Visit(browser, server, "search.html?q=Riccati", "desktop")
     try:
-        v.page.wait_for_function("() => document.querySelectorAll('#search-results li').length > 0",
-                                 timeout=30_000)
+        v.page.wait_for_function("() => document.querySelectorAll('#search-results li').length > 0", timeout=30_000)
         assert not v.errors, f"search.html: console errors: {v.errors}"
         assert not v.external_requests(), f"search.html: requests left the machine: {v.external_requests()}"
     finally:

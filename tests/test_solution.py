@@ -2,6 +2,7 @@
 
 Every run is a few Adam steps of the quick preset (the numbers do not matter here, only who computes them and when).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -44,12 +45,15 @@ class Recorder:
         return {"E": 1.0 / n, "E_zero": 10.0} if self.metrics is None else dict(self.metrics)
 
 
-@pytest.mark.parametrize("cls, fields", [
-    (Stage, {"model", "start", "history", "seed", "metrics"}),
-    (TrainHistory, {"step", "loss", "wall", "phase", "stop_reason", "wall_time", "final_loss"}),
-    (FiniteHorizonSolution, {"system", "config", "stages", "terminal_spec", "interrupted", "tol", "provenance"}),
-    (SteadyStateSolution, {"system", "config", "model", "history", "seed", "metrics", "provenance"}),
-])
+@pytest.mark.parametrize(
+    "cls, fields",
+    [
+        (Stage, {"model", "start", "history", "seed", "metrics"}),
+        (TrainHistory, {"step", "loss", "wall", "phase", "stop_reason", "wall_time", "final_loss"}),
+        (FiniteHorizonSolution, {"system", "config", "stages", "terminal_spec", "interrupted", "tol", "provenance"}),
+        (SteadyStateSolution, {"system", "config", "model", "history", "seed", "metrics", "provenance"}),
+    ],
+)
 def test_results_declare_every_field_and_document_it(cls, fields):
     assert dataclasses.is_dataclass(cls) and field_names(cls) == fields
     for name in fields:
@@ -88,8 +92,11 @@ def test_solver_metrics_come_from_the_hook_once_per_stage(pendulum):
     # called once per stage, on the chain ending with the new stage, before that stage had metrics
     assert [(n, h) for n, h, _ in hook.calls] == [(1, 0.5), (2, 1.0), (3, 1.5)]
     assert all(before == {} for _, _, before in hook.calls)
-    assert [s.metrics for s in sol.stages] == [{"E": 1.0, "E_zero": 10.0}, {"E": 0.5, "E_zero": 10.0},
-                                               {"E": 1 / 3, "E_zero": 10.0}]
+    assert [s.metrics for s in sol.stages] == [
+        {"E": 1.0, "E_zero": 10.0},
+        {"E": 0.5, "E_zero": 10.0},
+        {"E": 1 / 3, "E_zero": 10.0},
+    ]
     assert seen == [{"E": 0.5, "E_zero": 10.0}, {"E": 1 / 3, "E_zero": 10.0}]  # the callback sees them attached
     assert sol.metrics == sol.stages[-1].metrics and sol.provenance is None and sol.tol is None
 

@@ -1,4 +1,5 @@
 """Checkpoints: round trips, safe loading, mismatch detection, user systems, atomic writes."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -98,8 +99,7 @@ def test_steady_state_round_trip(saved, steady, x_test):
 
 def test_loaded_solution_can_be_extended(saved, two_stage, config):
     loaded = ph.load(saved["fh"])
-    solver = ph.FiniteHorizonSolver(loaded.system, config.replace(adam_steps=2), seed=4, device="cpu",
-                                    progress=False)
+    solver = ph.FiniteHorizonSolver(loaded.system, config.replace(adam_steps=2), seed=4, device="cpu", progress=False)
     longer = solver.extend(loaded, to=1.5)
     x = torch.rand(8, 2)
     with torch.no_grad():
@@ -251,7 +251,7 @@ def test_save_rejects_non_solution_with_type_error(tmp_path):
 
 def test_named_callable_terminal_cost_is_saved_by_name_and_must_be_passed_back(tmp_path, config):
     system = user_system()
-    phi = CallableTerminalCost(lambda x: 0.5 * (x ** 2).sum(-1), name="half |x|^2")
+    phi = CallableTerminalCost(lambda x: 0.5 * (x**2).sum(-1), name="half |x|^2")
     torch.manual_seed(0)
     model = FiniteHorizonValue(2, 1.0, system.train_domain, phi, width=config.width, depth=config.depth).float()
     sol = FiniteHorizonSolution(system, config, [Stage(model, 0.0, TrainHistory(), seed=0)], phi.spec())

@@ -1,4 +1,5 @@
 """Built-in systems (paper Section 6), the quartic erratum, LQ ground truth and construction checks."""
+
 from __future__ import annotations
 
 import math
@@ -116,13 +117,15 @@ def lq_system():
 def test_lq_value_star_is_care_quadratic_with_zero_residual(lq_system):
     P = ph.lq.care(A, B, np.diag([1.0, 2.0]), [[0.5]])
     x = torch.tensor(np.random.default_rng(0).uniform(-1, 1, (20, 2)))
-    np.testing.assert_allclose(lq_system.value_star(x).numpy(), np.einsum("bi,ij,bj->b", x.numpy(), P, x.numpy()),
-                               rtol=1e-13)
+    np.testing.assert_allclose(
+        lq_system.value_star(x).numpy(), np.einsum("bi,ij,bj->b", x.numpy(), P, x.numpy()), rtol=1e-13
+    )
     out = metrics.infinite_horizon_residual(lq_system, lq_system.value_star)
     assert out["E"] < 1e-18 and out["E_zero"] > 0.1
     _, grad = pinn.gradient(lq_system.value_star, x)
-    np.testing.assert_allclose(lq_system.policy_from_gradient(x, grad).numpy(), lq_system.policy_star(x).numpy(),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        lq_system.policy_from_gradient(x, grad).numpy(), lq_system.policy_star(x).numpy(), atol=1e-12
+    )
     # a perturbed quadratic is not a solution
     wrong = metrics.infinite_horizon_residual(lq_system, lambda z: 1.1 * lq_system.value_star(z))
     assert wrong["E"] > 1e-3
@@ -207,24 +210,30 @@ def test_nan_output_rejected():
         make(f=lambda x: torch.where(x > 0, torch.nan, -x))
 
 
-@pytest.mark.parametrize("R, match", [
-    ([[-1.0]], "positive definite"),
-    ([[0.0]], "positive definite"),
-    ([[1.0, 0.5], [0.0, 1.0]], "symmetric"),
-    ([[float("nan")]], "NaN"),
-    ([[1.0, 2.0]], "square"),
-])
+@pytest.mark.parametrize(
+    "R, match",
+    [
+        ([[-1.0]], "positive definite"),
+        ([[0.0]], "positive definite"),
+        ([[1.0, 0.5], [0.0, 1.0]], "symmetric"),
+        ([[float("nan")]], "NaN"),
+        ([[1.0, 2.0]], "square"),
+    ],
+)
 def test_bad_R(R, match):
     with pytest.raises(ValueError, match=match):
         make(R=R)
 
 
-@pytest.mark.parametrize("domain", [
-    [[-1, 1, 0], [-1, 1, 0]],       # three columns
-    [[[-1, 1]], [[-1, 1]]],          # three dimensions
-    [[1, -1], [-1, 1]],              # low > high
-    [[-1, np.inf], [-1, 1]],         # unbounded
-])
+@pytest.mark.parametrize(
+    "domain",
+    [
+        [[-1, 1, 0], [-1, 1, 0]],  # three columns
+        [[[-1, 1]], [[-1, 1]]],  # three dimensions
+        [[1, -1], [-1, 1]],  # low > high
+        [[-1, np.inf], [-1, 1]],  # unbounded
+    ],
+)
 def test_bad_domain(domain):
     with pytest.raises(ValueError, match="domain"):
         make(domain=domain)

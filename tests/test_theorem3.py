@@ -1,11 +1,12 @@
 """The Theorem 3 experiment (pinnhjb.paper.theorem3): the stored stages reload and their stored metrics still hold."""
+
 from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.linalg as sla
-from scipy.integrate import solve_ivp
 import torch
+from scipy.integrate import solve_ivp
 
 import pinnhjb as ph
 from pinnhjb.paper import theorem3
@@ -39,7 +40,7 @@ def test_exact_grids_are_complete_and_a_constant_passes_whole():
     exact = {name: theorem3.load_exact(name, OUT) for name in theorem3.ERRORS}
     assert all(e["converged"].all() for e in exact.values())
     v_star = ph.systems.quartic().value_star(torch.as_tensor(exact["none"]["x0"])).numpy()
-    assert np.allclose(exact["none"]["value"], v_star, atol=1e-6)     # V* is a fixed point of the extension
+    assert np.allclose(exact["none"]["value"], v_star, atol=1e-6)  # V* is a fixed point of the extension
     assert np.allclose(exact["offset"]["value"] - exact["vanishing"]["value"], 0.2, atol=1e-6)
 
 
@@ -50,7 +51,9 @@ def test_rollout_matches_the_matrix_exponential():
     K = np.array([[0.5, 0.3]])
     end = theorem3.rollout(system, lambda x, t: -(1 + t) * x @ torch.as_tensor(K.T), x0, 1.0, dt=0.01)
     # a time-varying gain: compare with scipy's integration of the same closed loop
-    sol = solve_ivp(lambda t, y: (A - (1 + t) * np.array([[0.0], [1.0]]) @ K) @ y, (0, 1), x0[1], rtol=1e-11, atol=1e-12)
+    sol = solve_ivp(
+        lambda t, y: (A - (1 + t) * np.array([[0.0], [1.0]]) @ K) @ y, (0, 1), x0[1], rtol=1e-11, atol=1e-12
+    )
     assert np.allclose(end[1], sol.y[:, -1], atol=1e-8)
     zero = theorem3.rollout(system, lambda x, t: torch.zeros(x.shape[0], 1, dtype=x.dtype), x0, 1.0)
     assert np.allclose(zero, x0 @ sla.expm(A).T, atol=1e-8)

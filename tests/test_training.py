@@ -2,6 +2,7 @@
 
 Every run is a few dozen Adam steps of the quick preset: enough to see the loss move, not to be accurate.
 """
+
 from __future__ import annotations
 
 import math
@@ -14,8 +15,17 @@ import pinnhjb as ph
 from pinnhjb.pinn import ValueTerminalCost
 
 FAST = dict(adam_steps=30, lbfgs_steps=0, eval_points_per_dim=11)
-PAPER_STYLE = dict(FAST, ansatz=False, sampling="fixed", schedule="inverse_time", lr_decay=0.002, n_flow=1024,
-                   n_boundary=256, n_origin=256, warm_start=False)
+PAPER_STYLE = dict(
+    FAST,
+    ansatz=False,
+    sampling="fixed",
+    schedule="inverse_time",
+    lr_decay=0.002,
+    n_flow=1024,
+    n_boundary=256,
+    n_origin=256,
+    warm_start=False,
+)
 
 
 def solver(config=None, seed=0, system=None, **overrides):
@@ -106,8 +116,11 @@ class _RecordingBar:
 def test_progress_bar_shows_the_latest_loss(pendulum, monkeypatch, phase):
     bars = []
     monkeypatch.setattr("pinnhjb.training.tqdm", lambda *a, **k: bars.append(_RecordingBar()) or bars[-1])
-    steps = {"adam": dict(adam_steps=7), "lbfgs": dict(adam_steps=0, lbfgs_steps=7),
-             "lm": dict(adam_steps=0, lm_steps=7, lm_points=64, lm_points_coarse=None, lm_min_progress=None)}[phase]
+    steps = {
+        "adam": dict(adam_steps=7),
+        "lbfgs": dict(adam_steps=0, lbfgs_steps=7),
+        "lm": dict(adam_steps=0, lm_steps=7, lm_points=64, lm_points_coarse=None, lm_min_progress=None),
+    }[phase]
     config = ph.TrainConfig.preset("quick", **{**FAST, "log_every": 5, "dtype": "float64", **steps})
     sol = ph.FiniteHorizonSolver(pendulum, config, seed=0, device="cpu", progress=True).solve(0.5)
     (bar,) = [b for b in bars if b.n]
@@ -254,8 +267,9 @@ def test_solve_until_stops_when_tolerance_is_met(pendulum):
 
 def test_solve_until_stops_at_max_horizon(pendulum):
     horizons = []
-    sol = solver(system=pendulum).solve_until(tol=1e-30, step=0.5, max_horizon=1.2,
-                                              callback=lambda s: horizons.append(s.horizon))
+    sol = solver(system=pendulum).solve_until(
+        tol=1e-30, step=0.5, max_horizon=1.2, callback=lambda s: horizons.append(s.horizon)
+    )
     assert sol.horizons == pytest.approx([0.5, 1.0, 1.2])
     assert horizons == pytest.approx([0.5, 1.0, 1.2])
     assert sol.converged is False
@@ -276,11 +290,23 @@ def test_steady_state_solver(pendulum):
 
 
 # ------------------------------------------------------------------------------ TrainConfig
-@pytest.mark.parametrize("field, value", [
-    ("width", 0), ("depth", 0), ("batch_size", 0), ("pool_size", 0), ("adam_steps", -1), ("lbfgs_steps", -1),
-    ("lr", 0.0), ("lr", float("nan")), ("log_every", 0), ("dtype", "float16"), ("sampling", "random"),
-    ("schedule", "step"),
-])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("width", 0),
+        ("depth", 0),
+        ("batch_size", 0),
+        ("pool_size", 0),
+        ("adam_steps", -1),
+        ("lbfgs_steps", -1),
+        ("lr", 0.0),
+        ("lr", float("nan")),
+        ("log_every", 0),
+        ("dtype", "float16"),
+        ("sampling", "random"),
+        ("schedule", "step"),
+    ],
+)
 def test_train_config_rejects_bad_fields(field, value):
     with pytest.raises(ValueError, match=field):
         ph.TrainConfig(**{field: value})

@@ -7,6 +7,7 @@ order. Then a few table rows of accepted inputs (``OK``), and the behaviours tha
 (chains of any length, E in any dimension, checkpoints, the perturbation switch) as short tests. Every training
 run here is a tiny network for a few iterations (well under a second).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -30,14 +31,34 @@ from pinnhjb.storage import PERTURB_ENV, CheckpointError
 from pinnhjb.training import StatePool, TrainHistory
 
 # ------------------------------------------------------------------------------ tiny systems and configs
-LM = ph.TrainConfig.preset("default", width=4, depth=1, lm_steps=3, lm_points=64, lm_points_coarse=None,
-                           pool_size=256, eval_points_per_dim=5)
-ADAM = ph.TrainConfig.preset("quick", width=4, depth=1, adam_steps=3, lbfgs_steps=0, pool_size=256, batch_size=32,
-                             eval_points_per_dim=5)
+LM = ph.TrainConfig.preset(
+    "default", width=4, depth=1, lm_steps=3, lm_points=64, lm_points_coarse=None, pool_size=256, eval_points_per_dim=5
+)
+ADAM = ph.TrainConfig.preset(
+    "quick", width=4, depth=1, adam_steps=3, lbfgs_steps=0, pool_size=256, batch_size=32, eval_points_per_dim=5
+)
 LBFGS = ADAM.replace(adam_steps=0, lbfgs_steps=2, lbfgs_points=32)
-CLI_TINY = ["--preset", "quick", "--set", "adam_steps=2", "--set", "lbfgs_steps=0", "--set", "width=4",
-            "--set", "depth=1", "--set", "pool_size=256", "--set", "batch_size=32", "--set", "eval_points_per_dim=5",
-            "--device", "cpu", "--no-progress"]
+CLI_TINY = [
+    "--preset",
+    "quick",
+    "--set",
+    "adam_steps=2",
+    "--set",
+    "lbfgs_steps=0",
+    "--set",
+    "width=4",
+    "--set",
+    "depth=1",
+    "--set",
+    "pool_size=256",
+    "--set",
+    "batch_size=32",
+    "--set",
+    "eval_points_per_dim=5",
+    "--device",
+    "cpu",
+    "--no-progress",
+]
 
 
 def f_pend(x):
@@ -71,8 +92,10 @@ def solver(sys_=None, config=LM, seed=0):
 
 def no_training(s):
     """The solver, with training replaced by a failure: an error expected before training must come first."""
+
     def fail(*args, **kwargs):
         raise AssertionError("training started before the bad argument was reported")
+
     s._train_stage = fail
     return s
 
@@ -106,6 +129,7 @@ def cli_fails(argv, *, saved=None):
         if rc not in (0, None):
             raise CliError(f"rc={rc}: {err}")
         return rc
+
     return action
 
 
@@ -125,6 +149,7 @@ def chain_with_broken_third_stage(ctx):
     def callback(sol):
         if len(sol.stages) == 2:
             state["scale"] = float("nan")  # the system breaks after stage 2 was trained and saved
+
     try:
         s.extend(first, to=1.5, step=0.5, callback=callback)
     except ValueError as exc:
@@ -155,9 +180,12 @@ def two_stage_checkpoint(ctx):
     torch.manual_seed(0)
     m1 = FiniteHorizonValue(2, 0.5, sys_.train_domain, width=4, depth=1).double().requires_grad_(False)
     m2 = FiniteHorizonValue(2, 0.5, sys_.train_domain, ValueTerminalCost(m1), width=4, depth=1).double()
-    sol = FiniteHorizonSolution(sys_, LM, [Stage(m1, 0.0, TrainHistory(), 0), Stage(m2.requires_grad_(False), 0.5,
-                                                                                        TrainHistory(), 1)],
-                                {"kind": "zero"})
+    sol = FiniteHorizonSolution(
+        sys_,
+        LM,
+        [Stage(m1, 0.0, TrainHistory(), 0), Stage(m2.requires_grad_(False), 0.5, TrainHistory(), 1)],
+        {"kind": "zero"},
+    )
     return ph.save(sol, ctx.tmp / "two.pt")
 
 
@@ -170,10 +198,12 @@ def interrupted_inside_save(ctx):
         if len(calls) == 2:
             raise KeyboardInterrupt
         return real(sol, path, **kw)
+
     ctx.monkeypatch.setattr(cli, "save", save)
     out = ctx.tmp / "c.pt"
-    rc, err = run_cli(["train", "pendulum", "--horizon", "0.5", "--extend-to", "1.5", "--step", "0.5",
-                       "--out", str(out), *CLI_TINY])
+    rc, err = run_cli(
+        ["train", "pendulum", "--horizon", "0.5", "--extend-to", "1.5", "--step", "0.5", "--out", str(out), *CLI_TINY]
+    )
     loaded = ph.load(out)
     assert rc == 130 and loaded.interrupted is True
     assert f"holds the stages up to T = {loaded.horizon:g}" in err and loaded.horizon == pytest.approx(1.0)
@@ -185,18 +215,36 @@ CASES = [
     ("R-wrong-size", lambda c: system(R=((1.0, 0.0), (0.0, 1.0))), ValueError, r"R is 2 x 2 but g\(x\) has m=1"),
     ("flat-domain-for-2d", lambda c: system(domain=[-1, 1]), ValueError, r"n=1 was taken from the flat domain"),
     ("ragged-domain", lambda c: system(domain=[[-1, 1], [-1]]), ValueError, r"domain \(Omega\) must be a box"),
-    ("train-box-inside-omega", lambda c: system(train_domain=[[-0.5, 0.5], [-0.5, 0.5]]), UserWarning,
-     r"training box .* does not contain Omega"),
-    ("omega-without-origin", lambda c: system(domain=[[0.5, 1.0], [-1, 1]]), UserWarning,
-     r"does not contain the origin"),
-    ("f-nan-on-part-of-box", lambda c: system(f=f_nan_far, train_domain=[[-1.5, 1.5]] * 2), ValueError,
-     r"f\(x\) is NaN or infinite at \d+ of \d+ states .* e\.g\. x = "),
-    ("f-nan-in-training-pool", lambda c: StatePool(system(), torch.tensor([[0.1, 0.2], [np.nan, 0.0]],
-                                                                        dtype=torch.float64)),
-     ValueError, r"f\(x\) is NaN or infinite at 1 of 2 training states"),
-    ("f0-nan", lambda c: system(f=lambda x: f_pend(x) + torch.where((x == 0).all(-1, keepdim=True),
-                                                                    float("nan"), 0.0)),
-     ValueError, r"f\(0\) must be 0 .* got \[\[nan"),
+    (
+        "train-box-inside-omega",
+        lambda c: system(train_domain=[[-0.5, 0.5], [-0.5, 0.5]]),
+        UserWarning,
+        r"training box .* does not contain Omega",
+    ),
+    (
+        "omega-without-origin",
+        lambda c: system(domain=[[0.5, 1.0], [-1, 1]]),
+        UserWarning,
+        r"does not contain the origin",
+    ),
+    (
+        "f-nan-on-part-of-box",
+        lambda c: system(f=f_nan_far, train_domain=[[-1.5, 1.5]] * 2),
+        ValueError,
+        r"f\(x\) is NaN or infinite at \d+ of \d+ states .* e\.g\. x = ",
+    ),
+    (
+        "f-nan-in-training-pool",
+        lambda c: StatePool(system(), torch.tensor([[0.1, 0.2], [np.nan, 0.0]], dtype=torch.float64)),
+        ValueError,
+        r"f\(x\) is NaN or infinite at 1 of 2 training states",
+    ),
+    (
+        "f0-nan",
+        lambda c: system(f=lambda x: f_pend(x) + torch.where((x == 0).all(-1, keepdim=True), float("nan"), 0.0)),
+        ValueError,
+        r"f\(0\) must be 0 .* got \[\[nan",
+    ),
     ("name-not-string", lambda c: system(name=3), TypeError, r"name must be a non-empty string; got 3"),
     ("R-not-numbers", lambda c: system(R=(("a",),)), ValueError, r"R must be a square \(m, m\) matrix of numbers"),
     ("builtin-R-abc", lambda c: ph.systems.pendulum(R="abc"), ValueError, r"pendulum: parameter R must be a positive"),
@@ -210,110 +258,278 @@ CASES = [
     ("lr-nan", lambda c: ph.TrainConfig(lr=math.nan), ValueError, r"lr=nan"),
     ("eval-points-1", lambda c: ph.TrainConfig(eval_points_per_dim=1), ValueError, r"eval_points_per_dim=1"),
     ("ansatz-string", lambda c: ph.TrainConfig(ansatz="yes"), ValueError, r"ansatz='yes' \(expected True or False\)"),
-    ("paper-on-user-system", lambda c: solver(config="paper"), ValueError,
-     r"config='paper' .* system 'mine' is not one of them: use config='default'"),
-    ("system-not-a-system", lambda c: ph.FiniteHorizonSolver("pendulum"), TypeError,
-     r"system must be a ControlAffineSystem"),
+    (
+        "paper-on-user-system",
+        lambda c: solver(config="paper"),
+        ValueError,
+        r"config='paper' .* system 'mine' is not one of them: use config='default'",
+    ),
+    (
+        "system-not-a-system",
+        lambda c: ph.FiniteHorizonSolver("pendulum"),
+        TypeError,
+        r"system must be a ControlAffineSystem",
+    ),
     # --- solver calls: all refused before any training
-    ("horizon-string", lambda c: no_training(solver()).solve("2"), ValueError,
-     r"horizon must be a positive finite number; got '2' of type str"),
+    (
+        "horizon-string",
+        lambda c: no_training(solver()).solve("2"),
+        ValueError,
+        r"horizon must be a positive finite number; got '2' of type str",
+    ),
     ("horizon-nan", lambda c: no_training(solver()).solve(math.nan), ValueError, r"horizon must be a positive finite"),
-    ("terminal-wrong-shape", lambda c: no_training(solver()).solve(0.5, terminal_cost=np.eye(3)), ValueError,
-     r"terminal_cost .* must be \(2, 2\); got shape \(3, 3\)"),
-    ("extend-to-inf", lambda c: no_training(solver()).extend(c.base, to=math.inf), ValueError,
-     r"to \(the extension target\) must be a finite number that must exceed the current horizon T=0\.5; got inf"),
-    ("extend-to-string", lambda c: no_training(solver()).extend(c.base, to="2"), ValueError,
-     r"to \(the extension target\) .* got '2' of type str"),
-    ("extend-step-1e-6", lambda c: no_training(solver()).extend(c.base, to=4.0, step=1e-6), ValueError,
-     r"step=1e-06 .* would train 3500000 stages, more than MAX_STAGES_PER_CALL"),
-    ("extend-step-negative", lambda c: no_training(solver()).extend(c.base, to=2.0, step=-1), ValueError,
-     r"step must be a positive finite number; got -1"),
-    ("solve-until-max-below-step", lambda c: no_training(solver()).solve_until(1e-3, step=2.0, max_horizon=1.0),
-     ValueError, r"first horizon \(step=2\) exceeds max_horizon=1"),
-    ("solve-until-max-nan", lambda c: no_training(solver()).solve_until(1e-3, step=1.0, max_horizon=math.nan),
-     ValueError, r"max_horizon must be a positive number \(inf allowed\); got nan"),
-    ("solve-until-step-0", lambda c: no_training(solver()).solve_until(1e-3, step=0), ValueError,
-     r"step must be a positive finite number; got 0"),
-    ("solve-until-tol-negative", lambda c: no_training(solver()).solve_until(-1.0, step=1.0), ValueError,
-     r"tol must be a positive finite number; got -1"),
+    (
+        "terminal-wrong-shape",
+        lambda c: no_training(solver()).solve(0.5, terminal_cost=np.eye(3)),
+        ValueError,
+        r"terminal_cost .* must be \(2, 2\); got shape \(3, 3\)",
+    ),
+    (
+        "extend-to-inf",
+        lambda c: no_training(solver()).extend(c.base, to=math.inf),
+        ValueError,
+        r"to \(the extension target\) must be a finite number that must exceed the current horizon T=0\.5; got inf",
+    ),
+    (
+        "extend-to-string",
+        lambda c: no_training(solver()).extend(c.base, to="2"),
+        ValueError,
+        r"to \(the extension target\) .* got '2' of type str",
+    ),
+    (
+        "extend-step-1e-6",
+        lambda c: no_training(solver()).extend(c.base, to=4.0, step=1e-6),
+        ValueError,
+        r"step=1e-06 .* would train 3500000 stages, more than MAX_STAGES_PER_CALL",
+    ),
+    (
+        "extend-step-negative",
+        lambda c: no_training(solver()).extend(c.base, to=2.0, step=-1),
+        ValueError,
+        r"step must be a positive finite number; got -1",
+    ),
+    (
+        "solve-until-max-below-step",
+        lambda c: no_training(solver()).solve_until(1e-3, step=2.0, max_horizon=1.0),
+        ValueError,
+        r"first horizon \(step=2\) exceeds max_horizon=1",
+    ),
+    (
+        "solve-until-max-nan",
+        lambda c: no_training(solver()).solve_until(1e-3, step=1.0, max_horizon=math.nan),
+        ValueError,
+        r"max_horizon must be a positive number \(inf allowed\); got nan",
+    ),
+    (
+        "solve-until-step-0",
+        lambda c: no_training(solver()).solve_until(1e-3, step=0),
+        ValueError,
+        r"step must be a positive finite number; got 0",
+    ),
+    (
+        "solve-until-tol-negative",
+        lambda c: no_training(solver()).solve_until(-1.0, step=1.0),
+        ValueError,
+        r"tol must be a positive finite number; got -1",
+    ),
     ("evaluate-points-per-dim-1", lambda c: c.base.evaluate(1), ValueError, r"points_per_dim must be an integer >= 2"),
     # --- divergence: an error naming the stage, optimiser and iteration; a useless stage: a warning
-    ("overflow-R-1e-300-LM", lambda c: one_stage(solver(scaled(R=1e-300))), DivergenceError,
-     r"stage mine T=0->0\.5: Levenberg-Marquardt diverged at iteration 1: the loss is inf"),
-    ("overflow-Q-1e200-LM", lambda c: one_stage(solver(scaled(q_scale=1e200))), DivergenceError,
-     r"Levenberg-Marquardt diverged at iteration 1"),
-    ("overflow-R-1e-300-Adam", lambda c: one_stage(solver(scaled(R=1e-300), ADAM)), DivergenceError,
-     r"stage mine T=0->0\.5: Adam diverged at iteration 1"),
-    ("overflow-R-1e-300-LBFGS", lambda c: one_stage(solver(scaled(R=1e-300), LBFGS)), DivergenceError,
-     r"L-BFGS diverged at iteration 1"),
-    ("saturated-network", lambda c: one_stage(solver(scaled(q_scale=1e6, R=1e-8),
-                                                     LM.replace(width=24, depth=3, lm_steps=4))),
-     RuntimeWarning, r"stage 1 \(mine T=0->0\.5\): E = .* is no better than E of V = 0"),
-    ("solve-until-not-converged", lambda c: solver().solve_until(1e-30, step=0.5, max_horizon=0.5),
-     RuntimeWarning, r"stopped at max_horizon=0\.5 without meeting tol=1e-30: E = .* \(converged=False\)"),
+    (
+        "overflow-R-1e-300-LM",
+        lambda c: one_stage(solver(scaled(R=1e-300))),
+        DivergenceError,
+        r"stage mine T=0->0\.5: Levenberg-Marquardt diverged at iteration 1: the loss is inf",
+    ),
+    (
+        "overflow-Q-1e200-LM",
+        lambda c: one_stage(solver(scaled(q_scale=1e200))),
+        DivergenceError,
+        r"Levenberg-Marquardt diverged at iteration 1",
+    ),
+    (
+        "overflow-R-1e-300-Adam",
+        lambda c: one_stage(solver(scaled(R=1e-300), ADAM)),
+        DivergenceError,
+        r"stage mine T=0->0\.5: Adam diverged at iteration 1",
+    ),
+    (
+        "overflow-R-1e-300-LBFGS",
+        lambda c: one_stage(solver(scaled(R=1e-300), LBFGS)),
+        DivergenceError,
+        r"L-BFGS diverged at iteration 1",
+    ),
+    (
+        "saturated-network",
+        lambda c: one_stage(solver(scaled(q_scale=1e6, R=1e-8), LM.replace(width=24, depth=3, lm_steps=4))),
+        RuntimeWarning,
+        r"stage 1 \(mine T=0->0\.5\): E = .* is no better than E of V = 0",
+    ),
+    (
+        "solve-until-not-converged",
+        lambda c: solver().solve_until(1e-30, step=0.5, max_horizon=0.5),
+        RuntimeWarning,
+        r"stopped at max_horizon=0\.5 without meeting tol=1e-30: E = .* \(converged=False\)",
+    ),
     ("later-stage-fails-keeps-earlier", chain_with_broken_third_stage, ValueError, r"f\(x\) is NaN or infinite"),
     # --- checkpoints
-    ("load-other-user-system-R", lambda c: ph.load(saved_checkpoint(c), system=scaled(R=2.0)), CheckpointError,
-     r"fingerprints differ in \['R', 'Q'\]|fingerprints differ in \['R'\]"),
-    ("load-other-user-system-f", lambda c: ph.load(saved_checkpoint(c), system=system(f=lambda x: 2 * f_pend(x))),
-     CheckpointError, r"(?s)differ in \['f'\].*stored in the checkpoint: \{name='mine'.*system given/rebuilt: +\{name"),
-    ("load-other-user-system-name", lambda c: ph.load(saved_checkpoint(c), system=system(name="other")),
-     CheckpointError, r"differ in \['name'\]"),
-    ("load-other-domain", lambda c: ph.load(saved_checkpoint(c), system=system(domain=[[-2, 2], [-2, 2]])),
-     CheckpointError, r"differ in \['domain', 'train_domain', 'probes'"),
-    ("checkpoint-missing-key", lambda c: ph.load(edited_checkpoint(c, lambda r: r.pop("stages")), system=system()),
-     CheckpointError, r"incomplete: 'checkpoint' lacks the key\(s\) \['stages'\]"),
-    ("checkpoint-stage-missing-key", lambda c: ph.load(edited_checkpoint(c, lambda r: r["stages"][0].pop("length")),
-                                                       system=system()),
-     CheckpointError, r"'stages\[0\]' lacks the key\(s\) \['length'\]"),
-    ("checkpoint-nan-weights", lambda c: ph.load(edited_checkpoint(
-        c, lambda r: r["stages"][0]["state"]["layers.0.weight"].fill_(float("nan"))), system=system()),
-     CheckpointError, r"stage 1: the stored weight 'layers\.0\.weight' holds NaN"),
-    ("checkpoint-inconsistent-starts", lambda c: ph.load(edited_checkpoint(
-        c, lambda r: r["stages"][0].update(start=0.25)), system=system()),
-     CheckpointError, r"stage starts are inconsistent: stage 1 starts at T=0\.25, but .* end at T=0"),
+    (
+        "load-other-user-system-R",
+        lambda c: ph.load(saved_checkpoint(c), system=scaled(R=2.0)),
+        CheckpointError,
+        r"fingerprints differ in \['R', 'Q'\]|fingerprints differ in \['R'\]",
+    ),
+    (
+        "load-other-user-system-f",
+        lambda c: ph.load(saved_checkpoint(c), system=system(f=lambda x: 2 * f_pend(x))),
+        CheckpointError,
+        r"(?s)differ in \['f'\].*stored in the checkpoint: \{name='mine'.*system given/rebuilt: +\{name",
+    ),
+    (
+        "load-other-user-system-name",
+        lambda c: ph.load(saved_checkpoint(c), system=system(name="other")),
+        CheckpointError,
+        r"differ in \['name'\]",
+    ),
+    (
+        "load-other-domain",
+        lambda c: ph.load(saved_checkpoint(c), system=system(domain=[[-2, 2], [-2, 2]])),
+        CheckpointError,
+        r"differ in \['domain', 'train_domain', 'probes'",
+    ),
+    (
+        "checkpoint-missing-key",
+        lambda c: ph.load(edited_checkpoint(c, lambda r: r.pop("stages")), system=system()),
+        CheckpointError,
+        r"incomplete: 'checkpoint' lacks the key\(s\) \['stages'\]",
+    ),
+    (
+        "checkpoint-stage-missing-key",
+        lambda c: ph.load(edited_checkpoint(c, lambda r: r["stages"][0].pop("length")), system=system()),
+        CheckpointError,
+        r"'stages\[0\]' lacks the key\(s\) \['length'\]",
+    ),
+    (
+        "checkpoint-nan-weights",
+        lambda c: ph.load(
+            edited_checkpoint(c, lambda r: r["stages"][0]["state"]["layers.0.weight"].fill_(float("nan"))),
+            system=system(),
+        ),
+        CheckpointError,
+        r"stage 1: the stored weight 'layers\.0\.weight' holds NaN",
+    ),
+    (
+        "checkpoint-inconsistent-starts",
+        lambda c: ph.load(edited_checkpoint(c, lambda r: r["stages"][0].update(start=0.25)), system=system()),
+        CheckpointError,
+        r"stage starts are inconsistent: stage 1 starts at T=0\.25, but .* end at T=0",
+    ),
     ("checkpoint-is-a-folder", lambda c: ph.load(c.tmp), CheckpointError, r"is a folder, not a checkpoint"),
     ("save-onto-a-folder", lambda c: ph.save(c.base, c.tmp), IsADirectoryError, r"it is an existing folder"),
     # --- command line: refused before training, nothing saved
-    ("cli-out-under-a-file", lambda c: cli_fails(["train", "pendulum", "--out", read_only_folder(c), *CLI_TINY])(c),
-     CliError, r"rc=2: error: --out .*: cannot create a file there: .* is not a folder"),
-    ("cli-out-existing-folder", cli_fails(["train", "pendulum", "--out", "{tmp}", *CLI_TINY]), CliError,
-     r"rc=2: error: --out .* is an existing folder"),
-    ("cli-param-R-abc", cli_fails(["train", "pendulum", "--param", "R=abc", "--out", "{tmp}/x.pt", *CLI_TINY],
-                                  saved="x.pt"),
-     CliError, r"--param R=abc: pendulum: parameter R must be a positive finite number; got 'abc'"),
-    ("cli-param-unknown", cli_fails(["train", "pendulum", "--param", "mass=2", "--out", "{tmp}/x.pt", *CLI_TINY]),
-     CliError, r"--param mass=2: system pendulum has no parameter 'mass' \(its parameters: R\)"),
-    ("cli-set-width-2.5", cli_fails(["train", "pendulum", "--out", "{tmp}/x.pt", *CLI_TINY, "--set", "width=2.5"]),
-     CliError, r"width=2\.5 \(expected an integer >= 1\)"),
-    ("cli-extend-to-below-horizon", cli_fails(["train", "pendulum", "--horizon", "2", "--extend-to", "1",
-                                               "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"),
-     CliError, r"--extend-to 1 must exceed --horizon 2"),
-    ("cli-lone-step", cli_fails(["train", "pendulum", "--step", "0.5", "--out", "{tmp}/x.pt", *CLI_TINY],
-                                saved="x.pt"),
-     CliError, r"--step 0\.5 is the increment of an extension: give --extend-to as well"),
-    ("cli-steady-state-with-horizon", cli_fails(["train", "pendulum", "--steady-state", "--horizon", "2",
-                                                 "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"),
-     CliError, r"--steady-state .* has no horizon: drop --horizon"),
-    ("cli-negative-step", cli_fails(["train", "pendulum", "--extend-to", "3", "--step", "-1",
-                                     "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"),
-     CliError, r"--step must be a positive finite number; got -1"),
-    ("cli-tiny-step", cli_fails(["train", "pendulum", "--extend-to", "3", "--step", "1e-6",
-                                 "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"),
-     CliError, r"would train more than 10000 stages"),
-    ("cli-diverges-saves-nothing", cli_fails(["train", "pendulum", "--param", "R=1e-300", "--out", "{tmp}/x.pt",
-                                              *CLI_TINY], saved="x.pt"),
-     CliError, r"rc=2: error: stage pendulum T=0->1: Adam diverged at iteration 1"),
-    ("cli-points-per-dim-0", cli_fails(["evaluate", "unused.pt", "--points-per-dim", "0"]), CliError,
-     r"(?s)rc=2: .*--points-per-dim: expected an integer >= 2"),
-    ("cli-points-per-dim-1", cli_fails(["evaluate", "unused.pt", "--points-per-dim", "1"]), CliError,
-     r"--points-per-dim: expected an integer >= 2 \(points per axis of the grid\); got 1"),
-    ("cli-points-per-dim-minus-3", cli_fails(["evaluate", "unused.pt", "--points-per-dim", "-3"]), CliError,
-     r"--points-per-dim: expected an integer >= 2"),
-    ("cli-reproduce-seeds-0", cli_fails(["reproduce", "--seeds", "0", "--out", "{tmp}/r"]), CliError,
-     r"--seeds must be at least 1"),
-    ("reproduce-run-seeds-0", lambda c: ph.paper.reproduce.run(out=c.tmp / "r", seeds=0), ValueError,
-     r"0 <= first_seed < seeds .*got first_seed=0, seeds=0"),
+    (
+        "cli-out-under-a-file",
+        lambda c: cli_fails(["train", "pendulum", "--out", read_only_folder(c), *CLI_TINY])(c),
+        CliError,
+        r"rc=2: error: --out .*: cannot create a file there: .* is not a folder",
+    ),
+    (
+        "cli-out-existing-folder",
+        cli_fails(["train", "pendulum", "--out", "{tmp}", *CLI_TINY]),
+        CliError,
+        r"rc=2: error: --out .* is an existing folder",
+    ),
+    (
+        "cli-param-R-abc",
+        cli_fails(["train", "pendulum", "--param", "R=abc", "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"),
+        CliError,
+        r"--param R=abc: pendulum: parameter R must be a positive finite number; got 'abc'",
+    ),
+    (
+        "cli-param-unknown",
+        cli_fails(["train", "pendulum", "--param", "mass=2", "--out", "{tmp}/x.pt", *CLI_TINY]),
+        CliError,
+        r"--param mass=2: system pendulum has no parameter 'mass' \(its parameters: R\)",
+    ),
+    (
+        "cli-set-width-2.5",
+        cli_fails(["train", "pendulum", "--out", "{tmp}/x.pt", *CLI_TINY, "--set", "width=2.5"]),
+        CliError,
+        r"width=2\.5 \(expected an integer >= 1\)",
+    ),
+    (
+        "cli-extend-to-below-horizon",
+        cli_fails(
+            ["train", "pendulum", "--horizon", "2", "--extend-to", "1", "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"
+        ),
+        CliError,
+        r"--extend-to 1 must exceed --horizon 2",
+    ),
+    (
+        "cli-lone-step",
+        cli_fails(["train", "pendulum", "--step", "0.5", "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"),
+        CliError,
+        r"--step 0\.5 is the increment of an extension: give --extend-to as well",
+    ),
+    (
+        "cli-steady-state-with-horizon",
+        cli_fails(
+            ["train", "pendulum", "--steady-state", "--horizon", "2", "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"
+        ),
+        CliError,
+        r"--steady-state .* has no horizon: drop --horizon",
+    ),
+    (
+        "cli-negative-step",
+        cli_fails(
+            ["train", "pendulum", "--extend-to", "3", "--step", "-1", "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"
+        ),
+        CliError,
+        r"--step must be a positive finite number; got -1",
+    ),
+    (
+        "cli-tiny-step",
+        cli_fails(
+            ["train", "pendulum", "--extend-to", "3", "--step", "1e-6", "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"
+        ),
+        CliError,
+        r"would train more than 10000 stages",
+    ),
+    (
+        "cli-diverges-saves-nothing",
+        cli_fails(["train", "pendulum", "--param", "R=1e-300", "--out", "{tmp}/x.pt", *CLI_TINY], saved="x.pt"),
+        CliError,
+        r"rc=2: error: stage pendulum T=0->1: Adam diverged at iteration 1",
+    ),
+    (
+        "cli-points-per-dim-0",
+        cli_fails(["evaluate", "unused.pt", "--points-per-dim", "0"]),
+        CliError,
+        r"(?s)rc=2: .*--points-per-dim: expected an integer >= 2",
+    ),
+    (
+        "cli-points-per-dim-1",
+        cli_fails(["evaluate", "unused.pt", "--points-per-dim", "1"]),
+        CliError,
+        r"--points-per-dim: expected an integer >= 2 \(points per axis of the grid\); got 1",
+    ),
+    (
+        "cli-points-per-dim-minus-3",
+        cli_fails(["evaluate", "unused.pt", "--points-per-dim", "-3"]),
+        CliError,
+        r"--points-per-dim: expected an integer >= 2",
+    ),
+    (
+        "cli-reproduce-seeds-0",
+        cli_fails(["reproduce", "--seeds", "0", "--out", "{tmp}/r"]),
+        CliError,
+        r"--seeds must be at least 1",
+    ),
+    (
+        "reproduce-run-seeds-0",
+        lambda c: ph.paper.reproduce.run(out=c.tmp / "r", seeds=0),
+        ValueError,
+        r"0 <= first_seed < seeds .*got first_seed=0, seeds=0",
+    ),
 ]
 
 # Accepted inputs (they must train or load without error).
@@ -322,8 +538,10 @@ OK = [
     ("horizon-tensor", lambda c: one_stage(horizon=torch.tensor(0.5))),
     ("seed-np-int64", lambda c: solver(seed=np.int64(3))),
     ("solve-until-max-horizon-inf", lambda c: solver().solve_until(1e6, step=0.5, max_horizon=math.inf)),
-    ("load-stored-artifact-without-fingerprint",
-     lambda c: ph.load(sorted(c.root.glob("artifacts/checkpoints/pendulum_extension/seed0.pt"))[0])),
+    (
+        "load-stored-artifact-without-fingerprint",
+        lambda c: ph.load(sorted(c.root.glob("artifacts/checkpoints/pendulum_extension/seed0.pt"))[0]),
+    ),
     ("cli-ctrl-c-inside-a-save", interrupted_inside_save),
 ]
 
@@ -336,6 +554,7 @@ def base():
 @pytest.fixture
 def ctx(tmp_path, monkeypatch, base):
     from pathlib import Path
+
     return SimpleNamespace(tmp=tmp_path, monkeypatch=monkeypatch, base=base, root=Path(__file__).resolve().parents[1])
 
 
@@ -384,8 +603,11 @@ def test_chains_of_any_length_evaluate_without_recursion():
     torch.manual_seed(0)
     models = [FiniteHorizonValue(2, 0.01, sys_.train_domain, width=2, depth=1).double().requires_grad_(False)]
     for _ in range(999):
-        models.append(FiniteHorizonValue(2, 0.01, sys_.train_domain, ValueTerminalCost(models[-1]), width=2,
-                                         depth=1).double().requires_grad_(False))
+        models.append(
+            FiniteHorizonValue(2, 0.01, sys_.train_domain, ValueTerminalCost(models[-1]), width=2, depth=1)
+            .double()
+            .requires_grad_(False)
+        )
     calls = []
     for m in models:
         m.net.register_forward_hook(lambda *a: calls.append(1))
@@ -394,8 +616,9 @@ def test_chains_of_any_length_evaluate_without_recursion():
     (g,) = torch.autograd.grad(v.sum(), x)
     assert torch.isfinite(v).all() and torch.isfinite(g).all()
     assert len(calls) == 2 * len(models)  # N(x, t) and N(0, t) of the ansatz: one pass per stage each
-    sol = FiniteHorizonSolution(sys_, LM, [Stage(m, 0.01 * k, TrainHistory(), k) for k, m in enumerate(models)],
-                                {"kind": "zero"})
+    sol = FiniteHorizonSolution(
+        sys_, LM, [Stage(m, 0.01 * k, TrainHistory(), k) for k, m in enumerate(models)], {"kind": "zero"}
+    )
     assert sol.horizon == pytest.approx(10.0) and np.isfinite(sol.value(np.zeros((1, 2)) + 0.1, t=3.0)).all()
 
 
@@ -404,8 +627,13 @@ def test_long_chain_saves_and_loads(tmp_path):
     torch.manual_seed(0)
     stages, prev = [], None
     for k in range(300):
-        m = FiniteHorizonValue(2, 0.1, sys_.train_domain, None if prev is None else ValueTerminalCost(prev), width=2,
-                               depth=1).double().requires_grad_(False)
+        m = (
+            FiniteHorizonValue(
+                2, 0.1, sys_.train_domain, None if prev is None else ValueTerminalCost(prev), width=2, depth=1
+            )
+            .double()
+            .requires_grad_(False)
+        )
         stages.append(Stage(m, 0.1 * k, TrainHistory(), k))
         prev = m
     sol = FiniteHorizonSolution(sys_, LM.replace(width=2, depth=1), stages, {"kind": "zero"})
@@ -422,8 +650,9 @@ def test_extension_moves_a_chain_loaded_elsewhere_to_the_solver_device_and_dtype
 
 def test_E_in_high_dimension_is_monte_carlo_with_its_standard_error():
     n = 8
-    sys_ = ph.ControlAffineSystem("n8", lambda x: -x, lambda x: torch.ones(x.shape[0], n, 1, dtype=x.dtype),
-                                  q_sq, [[1.0]], domain=[[-1, 1]] * n)
+    sys_ = ph.ControlAffineSystem(
+        "n8", lambda x: -x, lambda x: torch.ones(x.shape[0], n, 1, dtype=x.dtype), q_sq, [[1.0]], domain=[[-1, 1]] * n
+    )
     assert not metrics.uses_grid(sys_)
     out = metrics.infinite_horizon_residual(sys_, lambda x: 0.5 * q_sq(x))
     assert out["E_samples"] == metrics.MC_SAMPLES and 0 < out["E_stderr"] < 0.05 * out["E"]
@@ -434,8 +663,14 @@ def test_E_in_high_dimension_is_monte_carlo_with_its_standard_error():
 
 @pytest.mark.parametrize("n, per_dim", [(1, None), (2, None), (2, 41), (3, None), (3, 21), (4, None)])
 def test_small_cases_keep_their_exact_grid(n, per_dim):
-    sys_ = ph.ControlAffineSystem(f"n{n}", lambda x: -x, lambda x: torch.ones(x.shape[0], n, 1, dtype=x.dtype),
-                                  q_sq, [[1.0]], domain=[[-1, 1]] * n)
+    sys_ = ph.ControlAffineSystem(
+        f"n{n}",
+        lambda x: -x,
+        lambda x: torch.ones(x.shape[0], n, 1, dtype=x.dtype),
+        q_sq,
+        [[1.0]],
+        domain=[[-1, 1]] * n,
+    )
     assert metrics.uses_grid(sys_, per_dim)
     out = metrics.infinite_horizon_residual(sys_, lambda x: 0.5 * q_sq(x), points_per_dim=per_dim)
     assert "E_samples" not in out
@@ -476,6 +711,7 @@ def test_stale_temporary_files_are_removed(ctx):
 @pytest.fixture(scope="module")
 def artifact_states():
     from pathlib import Path
+
     path = Path(__file__).resolve().parents[1] / "artifacts" / "checkpoints" / "quartic_extension" / "seed0.pt"
     raw = torch.load(path, weights_only=True)
     return path, [st["state"] for st in raw["stages"]]
@@ -513,6 +749,7 @@ def test_frictions():
     np.testing.assert_allclose(A, [[0, 1], [-M * grav * l / J, -fd / J]], rtol=1e-12)
     np.testing.assert_allclose(B, [[0], [1 / J]], rtol=1e-12)
     np.testing.assert_allclose(Q, np.eye(2), rtol=1e-12)
-    lq = ph.systems.linear_quadratic(np.zeros((2, 2)) - np.eye(2), [[0.0], [1.0]], np.eye(2), [[1.0]],
-                                     domain=[[-1, 1], [-2, 2]])
+    lq = ph.systems.linear_quadratic(
+        np.zeros((2, 2)) - np.eye(2), [[0.0], [1.0]], np.eye(2), [[1.0]], domain=[[-1, 1], [-2, 2]]
+    )
     np.testing.assert_allclose(lq.train_domain, [[-1.25, 1.25], [-2.5, 2.5]])  # like the built-ins: beyond Omega

@@ -1,4 +1,5 @@
 """The frame explorer: one set of frames, a live widget and a kernel-free HTML slider."""
+
 import matplotlib
 
 matplotlib.use("Agg")

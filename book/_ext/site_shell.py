@@ -16,6 +16,7 @@
    ``_config.yml``) removes that header; this extension checks that it stays set, so a config change cannot
    bring the bug back silently.
 """
+
 from sphinx.errors import ConfigError
 
 
@@ -36,8 +37,10 @@ def _keep_first_copy(app, pagename, templatename, context, doctree):
 def _check_theme_options(app):
     opts = app.config.html_theme_options or {}
     if opts.get("navbar_persistent", None) != []:
-        raise ConfigError("html_theme_options.navbar_persistent must be [] (see book/_ext/site_shell.py): "
-                          "otherwise the phone's navigation drawer never opens")
+        raise ConfigError(
+            "html_theme_options.navbar_persistent must be [] (see book/_ext/site_shell.py): "
+            "otherwise the phone's navigation drawer never opens"
+        )
 
 
 def setup(app):

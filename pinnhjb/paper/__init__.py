@@ -7,14 +7,37 @@
   trained case against its reference, :mod:`.tables` writes the results tables;
 * :mod:`.theorem3`: Theorem 3 demonstrated on a trained stage (chapter 5), ``python -m pinnhjb.paper.theorem3``.
 """
+
 import importlib as _importlib
 
-from .artifacts import (artifacts_dir, checkpoint_path, load_case, load_reference, load_results,
-                        reference_path, reference_residual, stage_metric, stored_seeds)
+from .artifacts import (
+    artifacts_dir,
+    checkpoint_path,
+    load_case,
+    load_reference,
+    load_results,
+    reference_path,
+    reference_residual,
+    stage_metric,
+    stored_seeds,
+)
 from .cases import CASES, INF, Case, cases
 
-__all__ = ["CASES", "INF", "Case", "cases", "artifacts_dir", "checkpoint_path", "reference_path", "load_case",
-           "stored_seeds", "stage_metric", "reference_residual", "load_reference", "load_results"]
+__all__ = [
+    "CASES",
+    "INF",
+    "Case",
+    "cases",
+    "artifacts_dir",
+    "checkpoint_path",
+    "reference_path",
+    "load_case",
+    "stored_seeds",
+    "stage_metric",
+    "reference_residual",
+    "load_reference",
+    "load_results",
+]
 
 # Submodules imported on first use (``paper.reproduce`` after ``from pinnhjb import paper``); theorem3 is not
 # imported here so that ``python -m pinnhjb.paper.theorem3`` runs it only once.

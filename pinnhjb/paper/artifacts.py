@@ -1,5 +1,6 @@
 """Where the reproduction's artifacts live, and the loaders the chapters call: stored solutions per case and
 seed, the reference grids, the results table."""
+
 from __future__ import annotations
 
 import json
@@ -10,8 +11,18 @@ from ..storage import load
 from .cases import CASES, INF, Case
 from .evaluation import reference_grid_residual
 
-__all__ = ["DEFAULT_OUT", "artifacts_dir", "checkpoint_path", "reference_path", "load_case", "stored_seeds",
-           "stage_metric", "reference_residual", "load_reference", "load_results"]
+__all__ = [
+    "DEFAULT_OUT",
+    "artifacts_dir",
+    "checkpoint_path",
+    "reference_path",
+    "load_case",
+    "stored_seeds",
+    "stage_metric",
+    "reference_residual",
+    "load_reference",
+    "load_results",
+]
 
 DEFAULT_OUT = Path("artifacts")
 

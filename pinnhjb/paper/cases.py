@@ -1,5 +1,6 @@
 """The paper's simulations (Section 6) as data: each :class:`Case` with the paper's reported E, and the settings
 the reproduction evaluates them with (reference grids, closed-loop runs)."""
+
 from __future__ import annotations
 
 import math
@@ -7,8 +8,16 @@ from dataclasses import dataclass, field
 
 from ..systems import get_system
 
-__all__ = ["Case", "CASES", "INF", "THIRD_ORDER_PAPER", "REFERENCE_POINTS", "CLOSED_LOOP", "CLOSED_LOOP_SYSTEM",
-           "cases"]
+__all__ = [
+    "Case",
+    "CASES",
+    "INF",
+    "THIRD_ORDER_PAPER",
+    "REFERENCE_POINTS",
+    "CLOSED_LOOP",
+    "CLOSED_LOOP_SYSTEM",
+    "cases",
+]
 
 INF = math.inf
 
@@ -45,8 +54,14 @@ class Case:
 THIRD_ORDER_PAPER = {0.01: 0.0008, 0.1: 0.1152, 1.0: 0.0430, 10.0: 0.0031, 100.0: 0.0027}
 
 CASES: list[Case] = [
-    Case("pendulum_extension", "pendulum", first=1.0, to=4.0, step=1.0,
-         paper={1.0: 0.0453, 2.0: 0.0041, 3.0: 0.0026, 4.0: 0.0022}),
+    Case(
+        "pendulum_extension",
+        "pendulum",
+        first=1.0,
+        to=4.0,
+        step=1.0,
+        paper={1.0: 0.0453, 2.0: 0.0041, 3.0: 0.0026, 4.0: 0.0022},
+    ),
     Case("pendulum_one_stage", "pendulum", first=4.0),  # T = 4 in one stage: what extension saves
     Case("pendulum_steady", "pendulum", kind="steady", paper={INF: 0.0122}),
     Case("quartic_extension", "quartic", first=0.5, to=4.0, step=0.5, paper={0.5: 0.7705, 4.0: 1.536e-4}),
@@ -54,8 +69,15 @@ CASES: list[Case] = [
     Case("quartic_steady", "quartic", kind="steady"),
 ] + [
     # Table 2 is T = 0.5; the large-R cases are extended to test the paper's explanation of the R trend.
-    Case(f"third_order_R{R:g}", "third_order", params={"R": R}, first=0.5,
-         to=1.5 if R >= 1 else None, step=0.5 if R >= 1 else None, paper={0.5: E})
+    Case(
+        f"third_order_R{R:g}",
+        "third_order",
+        params={"R": R},
+        first=0.5,
+        to=1.5 if R >= 1 else None,
+        step=0.5 if R >= 1 else None,
+        paper={0.5: E},
+    )
     for R, E in THIRD_ORDER_PAPER.items()
 ]
 
@@ -74,5 +96,7 @@ def cases(quick: bool = False, only: list[str] | None = None) -> list[Case]:
     if not quick:
         return selected
     # --quick: the same cases with short chains, for CI.
-    return [Case(c.name, c.system, c.params, c.kind, c.first, None if c.to is None else c.first + c.step,
-                 c.step, c.paper) for c in selected]
+    return [
+        Case(c.name, c.system, c.params, c.kind, c.first, None if c.to is None else c.first + c.step, c.step, c.paper)
+        for c in selected
+    ]

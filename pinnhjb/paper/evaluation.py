@@ -1,5 +1,6 @@
 """One trained case measured against its reference: E of the reference V_T, true errors of V and mu, and the
 closed-loop cost of the learned policy, per horizon of a chain."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,8 +25,12 @@ def true_errors(system, solution, ref) -> dict:
     x = ref.points[ok]
     dv = solution.value(x) - ref.value[ok]
     du = solution.policy(x) - ref.policy[ok]
-    return {"value_max_error": float(np.abs(dv).max()), "value_rmse": float(np.sqrt(np.mean(dv**2))),
-            "policy_max_error": float(np.abs(du).max()), "policy_rmse": float(np.sqrt(np.mean(du**2)))}
+    return {
+        "value_max_error": float(np.abs(dv).max()),
+        "value_rmse": float(np.sqrt(np.mean(dv**2))),
+        "policy_max_error": float(np.abs(du).max()),
+        "policy_rmse": float(np.sqrt(np.mean(du**2))),
+    }
 
 
 def closed_loop_metrics(system, solution, x0: np.ndarray, v_star: np.ndarray, settings: dict) -> dict:
@@ -33,9 +38,11 @@ def closed_loop_metrics(system, solution, x0: np.ndarray, v_star: np.ndarray, se
     keep = (v_star > 1e-6) & run.stabilized  # a truncated cost of a run that did not settle says nothing
     ratio = run.cost[keep] / v_star[keep]
     finite = np.isfinite(ratio)
-    return {"fraction_stabilized": run.fraction_stabilized,
-            "suboptimality_mean": float(np.mean(ratio[finite])) if finite.any() else float("nan"),
-            "suboptimality_max": float(np.max(ratio[finite])) if finite.any() else float("nan")}
+    return {
+        "fraction_stabilized": run.fraction_stabilized,
+        "suboptimality_mean": float(np.mean(ratio[finite])) if finite.any() else float("nan"),
+        "suboptimality_max": float(np.max(ratio[finite])) if finite.any() else float("nan"),
+    }
 
 
 def closed_loop_states(system, ref_points: np.ndarray, per_dim: int) -> np.ndarray:
@@ -51,8 +58,7 @@ def closed_loop_states(system, ref_points: np.ndarray, per_dim: int) -> np.ndarr
 def stage_rows(case, system, sol, refs, x0_idx, mode: str) -> list[dict]:
     """Metrics per horizon of one trained solution."""
     rows = []
-    views = [(INF, sol)] if case.kind == "steady" else [(h, sol.truncated(k + 1)) for k, h in
-                                                        enumerate(case.horizons)]
+    views = [(INF, sol)] if case.kind == "steady" else [(h, sol.truncated(k + 1)) for k, h in enumerate(case.horizons)]
     for horizon, view in views:
         row = {"T": horizon, **{k: v for k, v in view.metrics.items()}}
         if system.value_star is None and refs.get(INF) is not None:

@@ -7,6 +7,7 @@ results table (markdown, CSV and JSON, :mod:`pinnhjb.paper.tables`) with the pap
 Reference grids (per-point Pontryagin solutions, :mod:`pinnhjb.reference`) do not depend on the seed and are
 reused when already present.
 """
+
 from __future__ import annotations
 
 import time
@@ -29,7 +30,7 @@ def _reference(case: Case, system, horizon: float, points: int, out: Path, progr
     path = reference_path(out, case, horizon)
     if path.exists():
         ref = ReferenceGrid.load(path)
-        if ref.points.shape[0] == points ** system.n:
+        if ref.points.shape[0] == points**system.n:
             return ref
     print(f"   reference {path.name}: {points}^{system.n} points", flush=True)
     ref = reference_grid(system, points_per_dim=points, horizon=horizon, progress=progress)
@@ -48,14 +49,27 @@ def _train(case: Case, system, config: TrainConfig, seed: int, progress: bool, o
     return sol
 
 
-def run(out: Path = DEFAULT_OUT, seeds: int = 3, quick: bool = False, only: list[str] | None = None,
-        progress: bool = True, first_seed: int = 0) -> dict:
+def run(
+    out: Path = DEFAULT_OUT,
+    seeds: int = 3,
+    quick: bool = False,
+    only: list[str] | None = None,
+    progress: bool = True,
+    first_seed: int = 0,
+) -> dict:
     """Train and evaluate every case for seeds ``first_seed .. seeds - 1``; write checkpoints, references and
     the results table (rows of seeds and cases not run are kept)."""
-    if isinstance(seeds, bool) or not isinstance(seeds, int) or isinstance(first_seed, bool) or \
-            not isinstance(first_seed, int) or not 0 <= first_seed < seeds:
-        raise ValueError(f"reproduce needs integer seeds with 0 <= first_seed < seeds (at least one seed to "
-                         f"train); got first_seed={first_seed!r}, seeds={seeds!r}")
+    if (
+        isinstance(seeds, bool)
+        or not isinstance(seeds, int)
+        or isinstance(first_seed, bool)
+        or not isinstance(first_seed, int)
+        or not 0 <= first_seed < seeds
+    ):
+        raise ValueError(
+            f"reproduce needs integer seeds with 0 <= first_seed < seeds (at least one seed to "
+            f"train); got first_seed={first_seed!r}, seeds={seeds!r}"
+        )
     out = Path(out)
     mode = "quick" if quick else "full"
     start = time.perf_counter()
@@ -77,24 +91,46 @@ def run(out: Path = DEFAULT_OUT, seeds: int = 3, quick: bool = False, only: list
             print(f"== {case.name} (seed {seed})", flush=True)
             path = checkpoint_path(out, case.name, seed)
             t0 = time.perf_counter()
-            sol = _train(case, system, config, seed, progress,
-                         on_stage=lambda s, p=path: save(s, p, seed=s.stages[0].seed, case=case.name))
+            sol = _train(
+                case,
+                system,
+                config,
+                seed,
+                progress,
+                on_stage=lambda s, p=path, name=case.name: save(s, p, seed=s.stages[0].seed, case=name),
+            )
             wall = time.perf_counter() - t0
             rows = stage_rows(case, system, sol, refs, x0_idx, mode)
             save(sol, path, seed=seed, case=case.name, evaluation={"rows": rows})
             for row in rows:
-                print(f"   T={row['T']:g}: E={row['E']:.3e}" + (f" max|V-V*|={row['value_max_error']:.2e}"
-                                                                 if "value_max_error" in row else ""), flush=True)
-            records.append({"case": case.name, "system": case.system, "params": case.params, "seed": seed,
-                            "wall_time": wall, "train_time": sol.wall_time, "rows": rows,
-                            "paper": {str(k): v for k, v in case.paper.items()}})
+                print(
+                    f"   T={row['T']:g}: E={row['E']:.3e}"
+                    + (f" max|V-V*|={row['value_max_error']:.2e}" if "value_max_error" in row else ""),
+                    flush=True,
+                )
+            records.append(
+                {
+                    "case": case.name,
+                    "system": case.system,
+                    "params": case.params,
+                    "seed": seed,
+                    "wall_time": wall,
+                    "train_time": sol.wall_time,
+                    "rows": rows,
+                    "paper": {str(k): v for k, v in case.paper.items()},
+                }
+            )
     records = merge_records(out, records)
     summary = aggregate(records)
-    meta = provenance(mode=mode, seeds=seeds, config=TrainConfig.preset("quick" if quick else "default").to_dict(),
-                      closed_loop={"default": CLOSED_LOOP[mode], **({} if quick else CLOSED_LOOP_SYSTEM)},
-                      reference_points=REFERENCE_POINTS[mode],
-                      wall_time=time.perf_counter() - start,
-                      cases_wall_time=float(sum(r["wall_time"] for r in records)),
-                      reference_wall_time=reference_wall_time(out))
+    meta = provenance(
+        mode=mode,
+        seeds=seeds,
+        config=TrainConfig.preset("quick" if quick else "default").to_dict(),
+        closed_loop={"default": CLOSED_LOOP[mode], **({} if quick else CLOSED_LOOP_SYSTEM)},
+        reference_points=REFERENCE_POINTS[mode],
+        wall_time=time.perf_counter() - start,
+        cases_wall_time=float(sum(r["wall_time"] for r in records)),
+        reference_wall_time=reference_wall_time(out),
+    )
     write_tables(out, records, summary, meta)
     return {"records": records, "summary": summary, "meta": meta}

@@ -16,11 +16,12 @@ fixed step counts, about 20 s each on two CPU cores) and stores them with :func:
 The terminal cost V* + e is code, so the checkpoint stores it by name and :func:`load` passes the same
 function back (``pinnhjb.load`` refuses such a checkpoint without it).
 """
+
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -35,8 +36,23 @@ from ..storage import save as _save
 from ..systems import quartic
 from .artifacts import artifacts_dir
 
-__all__ = ["ERRORS", "FORMULAS", "DELTA", "SEED", "config", "terminal_cost", "train", "save", "load", "path",
-           "rollout", "bound_check", "summary", "exact_stage", "load_exact"]
+__all__ = [
+    "ERRORS",
+    "FORMULAS",
+    "DELTA",
+    "SEED",
+    "config",
+    "terminal_cost",
+    "train",
+    "save",
+    "load",
+    "path",
+    "rollout",
+    "bound_check",
+    "summary",
+    "exact_stage",
+    "load_exact",
+]
 
 Tensor = torch.Tensor
 
@@ -46,9 +62,8 @@ ERRORS: dict[str, Callable[[Tensor], Tensor]] = {
     "vanishing": lambda x: 0.3 * (x[:, 0] ** 2 - x[:, 1] ** 2),
     "offset": lambda x: 0.3 * (x[:, 0] ** 2 - x[:, 1] ** 2) + 0.2,
 }
-FORMULAS = {"none": "e(x) = 0", "vanishing": "e(x) = 0.3 (x1^2 - x2^2)",
-            "offset": "e(x) = 0.3 (x1^2 - x2^2) + 0.2"}
-DELTA = 1.0          # the extension T' - T
+FORMULAS = {"none": "e(x) = 0", "vanishing": "e(x) = 0.3 (x1^2 - x2^2)", "offset": "e(x) = 0.3 (x1^2 - x2^2) + 0.2"}
+DELTA = 1.0  # the extension T' - T
 SEED = 0
 DEFAULT_DIR = Path("artifacts") / "theorem3"
 
@@ -80,8 +95,16 @@ def path(error: str, out: Path | None = None) -> Path:
 
 def save(sol: FiniteHorizonSolution, error: str, out: Path | None = None, **extra) -> Path:
     """Store the stage's networks and metrics; the terminal cost V* + e is stored by name (see :func:`load`)."""
-    return _save(sol, path(error, out), seed=sol.stages[0].seed, case="theorem3", theorem3_error=error,
-                 theorem3_terminal=f"V*(x) + {FORMULAS[error]}", theorem3_delta=sol.horizon, **extra)
+    return _save(
+        sol,
+        path(error, out),
+        seed=sol.stages[0].seed,
+        case="theorem3",
+        theorem3_error=error,
+        theorem3_terminal=f"V*(x) + {FORMULAS[error]}",
+        theorem3_delta=sol.horizon,
+        **extra,
+    )
 
 
 def load(error: str, out: Path | None = None) -> FiniteHorizonSolution:
@@ -117,9 +140,13 @@ def summary(check: dict, network_error: float) -> dict:
     """Scalars of a :func:`bound_check`: max error, max bound, max |e| before the extension, the fraction of
     points where the bound alone holds, and whether bound + ``network_error`` holds everywhere."""
     err, bound = check["error"], check["bound"]
-    return {"max_error": float(err.max()), "max_bound": float(bound.max()), "max_e_start": float(check["e_start"].max()),
-            "fraction_within_bound": float(np.mean(err <= bound)),
-            "within_bound_plus_network": bool(np.all(err <= bound + network_error))}
+    return {
+        "max_error": float(err.max()),
+        "max_bound": float(bound.max()),
+        "max_e_start": float(check["e_start"].max()),
+        "fraction_within_bound": float(np.mean(err <= bound)),
+        "within_bound_plus_network": bool(np.all(err <= bound + network_error)),
+    }
 
 
 def exact_stage(error: str, points_per_dim: int = 21, delta: float = DELTA, tol: float = 1e-8) -> dict:
@@ -136,13 +163,14 @@ def exact_stage(error: str, points_per_dim: int = 21, delta: float = DELTA, tol:
     x0 = system.grid(points_per_dim).numpy()
     value, end, ok = np.full(len(x0), np.nan), np.full_like(x0, np.nan), np.zeros(len(x0), dtype=bool)
     order = np.argsort(np.linalg.norm(x0, axis=1), kind="stable")  # from the origin out, each point warm-started
-    solved: dict[int, dict] = {}                                    # from its nearest solved neighbour
+    solved: dict[int, dict] = {}  # from its nearest solved neighbour
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for k in order:
             near = min(solved, key=lambda j: np.linalg.norm(x0[j] - x0[k])) if solved else None
-            res = solve_point(system, x0[k], horizon=delta, terminal_cost=phi, tol=tol,
-                              guess=None if near is None else solved[near])
+            res = solve_point(
+                system, x0[k], horizon=delta, terminal_cost=phi, tol=tol, guess=None if near is None else solved[near]
+            )
             if res["converged"]:
                 value[k], end[k], ok[k] = res["value"], res["solution"].sol(delta)[: system.n], True
                 solved[k] = res
@@ -171,13 +199,16 @@ def main(argv=None):
         ex = exact_stage(error)
         np.savez(exact_path(error, args.out), **ex)
         print(f"{error:9s} exact: {int(ex['converged'].sum())}/{len(ex['x0'])} points converged", flush=True)
-    for error in ([] if args.exact_only else ERRORS):
+    for error in [] if args.exact_only else ERRORS:
         sol = train(error, progress=False)
         check = bound_check(sol, error)
         stored = {k: v for k, v in summary(check, 0.0).items() if k != "within_bound_plus_network"}
         p = save(sol, error, args.out, evaluation=stored)
-        print(f"{error:9s} -> {p}: wall {sol.wall_time:.1f} s, E = {sol.metrics['E']:.2e}, "
-              f"max|V-V*| = {sol.metrics['value_max_error']:.3e}, max bound = {check['bound'].max():.3e}", flush=True)
+        print(
+            f"{error:9s} -> {p}: wall {sol.wall_time:.1f} s, E = {sol.metrics['E']:.2e}, "
+            f"max|V-V*| = {sol.metrics['value_max_error']:.3e}, max bound = {check['bound'].max():.3e}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
