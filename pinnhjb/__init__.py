@@ -1,18 +1,22 @@
 """pinnhjb: physics-informed learning of the infinite-horizon optimal control problem via the finite-horizon
 HJB (Fotiadis & Vamvoudakis). See the README and the book for the map from the paper to the modules:
 
-systems (f, g, Q, R, Omega as data) · lq (Riccati ground truth) · pinn (networks) · residuals (the PDE forms
-F_e, F_b, F_in, E_e, registered by name) · config / training (Algorithm 1) · gauss_newton (Levenberg-Marquardt,
-our optimiser) · jacobian (its fast Jacobian) · solver (solve, extend = Theorem 2, solve_until, steady-state
-baseline) · metrics (E, errors, closed loop) · storage (checkpoints with provenance). What belongs to the paper
-(its cases, the reproduction, the Theorem 3 demonstration, the chapters' loaders) is in the subpackage paper.
+* systems: f, g, Q, R, Omega as data; lq: the Riccati ground truth; pinn: the networks.
+* residuals: the PDE forms (F_e, F_b, F_in, E_e), registered by name.
+* optimizers: Adam, LBFGS, LevenbergMarquardt, the phases of a recipe, registered by name; gauss_newton: the
+  Levenberg-Marquardt step; jacobian: its fast Jacobian.
+* config, training: Algorithm 1; solver: solve, extend (Theorem 2), solve_until, the steady-state baseline.
+* solution, metrics: the results, E, errors, closed loop; storage: checkpoints with provenance.
+* paper: what belongs to the paper (its cases, the reproduction, the Theorem 3 demonstration, the chapters'
+  loaders).
 """
 
 import importlib as _importlib
 
-from . import lq, metrics, residuals, systems
+from . import lq, metrics, optimizers, residuals, systems
 from .config import TrainConfig
 from .gauss_newton import DivergenceError
+from .optimizers import LBFGS, Adam, LevenbergMarquardt
 from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
 from .solver import FiniteHorizonSolver, SteadyStateSolver
 from .storage import CheckpointError, load, save
@@ -25,8 +29,12 @@ __all__ = [
     "lq",
     "metrics",
     "residuals",
+    "optimizers",
     "reference",
     "TrainConfig",
+    "Adam",
+    "LBFGS",
+    "LevenbergMarquardt",
     "FiniteHorizonSolver",
     "SteadyStateSolver",
     "FiniteHorizonSolution",

@@ -2,6 +2,7 @@
 
     python -m pinnhjb train pendulum --horizon 1 --extend-to 4 --step 1 --seed 0 --out artifacts/pendulum.pt
     python -m pinnhjb train third_order --param R=0.1 --horizon 0.5 --out r01.pt
+    python -m pinnhjb train quartic --preset adam_lbfgs --set adam.steps=500 --set lbfgs=off --out q.pt
     python -m pinnhjb evaluate artifacts/pendulum.pt
     python -m pinnhjb reproduce --seeds 3          # every simulation of the paper -> artifacts/
 
@@ -93,13 +94,31 @@ def _system(args):
 
 
 def _config(args) -> TrainConfig:
+    """The preset with every ``--set``: ``FIELD=VALUE`` for a TrainConfig field, ``PHASE.FIELD=VALUE`` for a field
+    of the optimiser phase named PHASE (``adam``, ``lbfgs``, ``lm``), ``PHASE=off`` to drop that phase."""
     overrides = _parse_params(args.set, "--set")
+    fields = {k: v for k, v in overrides.items() if "." not in k and v != "off"}
     try:
-        return TrainConfig.preset(args.preset, system=args.system, **overrides)
+        config = TrainConfig.preset(args.preset, system=args.system, **fields)
     except TypeError as exc:  # an unknown field
-        raise UsageError(f"--set: {exc} (TrainConfig fields: {', '.join(TrainConfig.__dataclass_fields__)})") from None
+        raise UsageError(
+            f"--set: {exc} (TrainConfig fields: {', '.join(TrainConfig.__dataclass_fields__)}; a phase's field: "
+            f"PHASE.FIELD=VALUE, e.g. lm.steps=100)"
+        ) from None
     except ValueError as exc:
         raise UsageError(f"--set / --preset: {exc}") from None
+    for key, value in overrides.items():
+        try:
+            if "." in key:
+                name, field = key.split(".", 1)
+                config = config.with_phase(name, **{field: value})
+            elif value == "off":
+                config = config.without_phase(key)
+        except KeyError as exc:
+            raise UsageError(f"--set {key}={value}: {exc.args[0]}") from None
+        except ValueError as exc:
+            raise UsageError(f"--set {key}={value}: {exc}") from None
+    return config
 
 
 def _check_horizons(args):
@@ -230,7 +249,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--step", type=float, default=None, help="extension increment (default: one increment)")
     t.add_argument("--steady-state", action="store_true", help="train the direct steady-state PINN instead")
     t.add_argument("--preset", default="default", help="training recipe: default, adam_lbfgs, paper, quick")
-    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a TrainConfig field")
+    t.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a TrainConfig field (width=32), a field of an optimiser phase (adam.steps=500, "
+        "lm.points=2000) or drop a phase (lbfgs=off); repeatable",
+    )
     t.add_argument("--param", action="append", default=[], metavar="KEY=VALUE", help="system parameter, e.g. R=0.1")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")

@@ -183,7 +183,8 @@ class _Solver:
         if E is not None and E_zero is not None and not E < E_zero:
             warnings.warn(
                 f"{what}: E = {E:.3e} is no better than E of V = 0 ({E_zero:.3e}): the network learned "
-                f"nothing useful (saturated? check the scale of Q and R, the horizon, lr or lm_damping)",
+                f"nothing useful (saturated? check the scale of Q and R, the horizon, or the optimiser phases' "
+                f"lr or damping)",
                 RuntimeWarning,
                 stacklevel=4,
             )

@@ -2,25 +2,22 @@
 
 The loss is the paper's eq-mse: MSE_e (flow residual F_e, eq-fe) + MSE_b (terminal residual F_b, eq-fb) + MSE_in
 (origin residual F_in, eq-fin); under the ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue` the last two are
-zero by construction and only MSE_e is minimised: by Adam and L-BFGS, or (our default) by Levenberg-Marquardt on
-the per-point residuals (:mod:`pinnhjb.gauss_newton`). The residuals and their Jacobians are the objects of
-:mod:`pinnhjb.residuals`. f, g, Q and the terminal cost phi (with its gradient) are
-evaluated once per stage on a pool of states and then indexed, so a frozen chain of previous stages
-costs nothing per step.
+zero by construction and only MSE_e is minimised. This module builds a stage's loss and samplers (an
+:class:`~pinnhjb.optimizers.Objective`) and runs the config's optimiser phases on it (:mod:`pinnhjb.optimizers`);
+the residuals and their Jacobians are the objects of :mod:`pinnhjb.residuals`. f, g, Q and the terminal cost phi
+(with its gradient) are evaluated once per stage on a pool of states and then indexed, so a frozen chain of
+previous stages costs nothing per step.
 """
 
 from __future__ import annotations
 
-import math
-import time
-import warnings
 from dataclasses import dataclass, field
 
 import torch
-from tqdm.auto import tqdm
 
 from .config import TrainConfig
-from .gauss_newton import DivergenceError, FlatParameters, levenberg_marquardt
+from .gauss_newton import FlatParameters
+from .optimizers import Objective, Tracker
 from .pinn import FiniteHorizonValue, SteadyStateValue, ValueTerminalCost, gradient
 from .residuals import Residual, get_residual
 
@@ -29,6 +26,7 @@ Tensor = torch.Tensor
 __all__ = [
     "TrainHistory",
     "StatePool",
+    "run_phases",
     "shared_times",
     "train_finite_horizon",
     "train_steady_state",
@@ -91,27 +89,6 @@ class TrainHistory:
     @classmethod
     def from_dict(cls, d: dict) -> TrainHistory:
         return cls(**d)
-
-
-class _Log:
-    """The :class:`TrainHistory` of a stage while it trains: points appended, then frozen by :meth:`history`."""
-
-    def __init__(self):
-        self.step, self.loss, self.wall, self.phase = [], [], [], []
-        self.stop_reason = ""
-        self.wall_time = 0.0
-        self.final_loss = float("nan")
-
-    def record(self, step: int, loss: float, wall: float, phase: str):
-        self.step.append(int(step))
-        self.loss.append(float(loss))
-        self.wall.append(float(wall))
-        self.phase.append(phase)
-
-    def history(self) -> TrainHistory:
-        return TrainHistory(
-            self.step, self.loss, self.wall, self.phase, self.stop_reason, self.wall_time, self.final_loss
-        )
 
 
 # ---------------------------------------------------------------------- cached data
@@ -184,177 +161,30 @@ class StatePool:
 # ---------------------------------------------------------------------- the optimisation loop
 
 
-def _lr_factor(config: TrainConfig):
-    K = max(config.adam_steps, 1)
-    if config.schedule == "cosine":
-        r = config.lr_final_ratio
-        return lambda k: r + (1 - r) * 0.5 * (1 + math.cos(math.pi * min(k, K) / K))
-    if config.schedule == "inverse_time":
-        return lambda k: 1.0 / (1.0 + config.lr_decay * k)
-    return lambda k: 1.0
+def run_phases(objective: Objective, config: TrainConfig, progress: bool) -> TrainHistory:
+    """Run ``config.phases`` in turn on ``objective``; the stage's training log.
 
+    * ``objective``: the stage's loss and samplers.
+    * ``config``: the recipe (its phases, ``max_time``, ``log_every``).
+    * ``progress``: show a progress bar.
 
-def _optimize(
-    params, batch_loss, sample, epochs, config: TrainConfig, desc: str, progress: bool, lm=None
-) -> TrainHistory:
-    """Adam (resampled batches, or epochs of fixed mini-batches with the paper's stop rule), then L-BFGS, then
-    Levenberg-Marquardt.
-
-    ``sample(size)`` returns a fresh batch; ``epochs()`` yields lists of mini-batches (fixed data);
-    ``lm = (flat, residual, lm_sample)`` for the Levenberg-Marquardt phase (see :mod:`.gauss_newton`): the network's
-    flat weights, the :class:`~pinnhjb.residuals.Residual` whose per-point form and Jacobian it uses, and a sampler
-    of its per-point arguments.
+    The first phase always starts; a later one not yet started when ``max_time`` has passed is skipped. The
+    history's stop reason is the last reason a phase gave (L-BFGS, which runs its fixed count, gives none).
     """
-    params = list(params)
-    hist = _Log()
-    start = time.perf_counter()
-    opt = torch.optim.Adam(params, lr=config.lr)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_factor(config))
-    bar = tqdm(
-        total=config.adam_steps + config.lbfgs_steps + config.lm_steps,
-        desc=desc,
-        disable=not progress,
-        leave=False,
-        dynamic_ncols=True,
-    )
-    step = 0
-    last = float("nan")
-
-    def adam_step(batch) -> float:
-        nonlocal step, last
-        opt.zero_grad(set_to_none=True)
-        loss = batch_loss(batch)
-        if not torch.isfinite(loss):
-            raise DivergenceError(
-                desc,
-                "Adam",
-                step + 1,
-                f"the loss is {loss.item()}",
-                "lower lr, or check the scale of the system (f, g, Q, R) and that f, g, Q are "
-                "finite on the training box",
-            )
-        loss.backward()
-        opt.step()
-        sched.step()
-        step += 1
-        value = last = loss.item()
-        if step % config.log_every == 0 or step == 1:
-            hist.record(step, value, time.perf_counter() - start, "adam")
-        bar.set_postfix(loss=f"{value:.3e}", refresh=False)  # shown at tqdm's own refresh rate
-        bar.update(1)
-        return value
-
-    def out_of_time() -> bool:
-        return config.max_time is not None and time.perf_counter() - start > config.max_time
-
-    hist.stop_reason = "adam_steps"
-    if config.sampling == "resample":
-        while step < config.adam_steps:
-            adam_step(sample(config.batch_size))
-            if out_of_time():
-                hist.stop_reason = "max_time"
+    tracker = Tracker(sum(p.steps for p in config.phases), objective.desc, progress, config.log_every, config.max_time)
+    loss, reason = float("nan"), ""
+    try:
+        for i, phase in enumerate(config.phases):
+            if i > 0 and tracker.out_of_time():
+                reason = "max_time"
                 break
-    else:
-        done = False
-        while not done:
-            all_below = True
-            for batch in epochs():
-                value = adam_step(batch)
-                all_below &= config.stop_loss is not None and value < config.stop_loss
-                if step >= config.adam_steps:
-                    done = True
-                    break
-                if out_of_time():
-                    hist.stop_reason, done = "max_time", True
-                    break
-            else:
-                if all_below:
-                    hist.stop_reason, done = "stop_loss", True
-    evals = 0
-    if config.lbfgs_steps > 0:
-        batch = sample(config.lbfgs_points)
-        lbfgs = torch.optim.LBFGS(
-            params,
-            lr=1.0,
-            max_iter=config.lbfgs_steps,
-            history_size=50,
-            tolerance_grad=1e-12,
-            tolerance_change=1e-15,
-            line_search_fn="strong_wolfe",
-        )
-
-        def closure():
-            nonlocal evals
-            lbfgs.zero_grad(set_to_none=True)
-            loss = batch_loss(batch)
-            if evals == 0 and not torch.isfinite(loss):  # at the starting point: not a line-search overshoot
-                raise DivergenceError(desc, "L-BFGS", 1, f"the loss is {loss.item()} at its starting point")
-            loss.backward()
-            evals += 1
-            if evals % config.log_every == 0:
-                hist.record(step + evals, loss.item(), time.perf_counter() - start, "lbfgs")
-            bar.set_postfix(loss=f"{loss.item():.3e}", refresh=False)
-            bar.update(1)
-            return loss
-
-        before = [p.detach().clone() for p in params]
-        lbfgs.step(closure)
-        final = batch_loss(batch)
-        if not torch.isfinite(final):  # a diverged line search must not destroy the Adam result
-            with torch.no_grad():
-                for p, b in zip(params, before):
-                    p.copy_(b)
-            final = batch_loss(batch)
-            if not torch.isfinite(final):
-                raise DivergenceError(desc, "L-BFGS", evals, f"the loss is {final.item()}")
-            warnings.warn(
-                f"stage {desc}: L-BFGS diverged (non-finite loss after {evals} evaluations); kept the "
-                f"weights from before L-BFGS (loss {final.item():.3e})",
-                RuntimeWarning,
-                stacklevel=2,
-            )
-        hist.final_loss = final.item()
-    else:
-        hist.final_loss = last
-    iterations = 0
-    if config.lm_steps > 0:
-        flat, residual, lm_sample = lm
-        done = step + evals
-
-        def on_step(k, loss, damping):
-            if k % config.log_every == 0 or k == 1:
-                hist.record(done + k, loss, time.perf_counter() - start, "lm")
-            bar.set_postfix(loss=f"{loss:.3e}", refresh=False)
-            bar.update(1)
-
-        left = None if config.max_time is None else config.max_time - (time.perf_counter() - start)
-        if left is None or left > 0:
-            # the coarse level ends on a stall: without the stall rule, lm_points throughout
-            coarse = config.lm_points_coarse if config.lm_min_progress is not None else None
-            points = (config.lm_points,) if coarse is None else (coarse, config.lm_points)
-            result = levenberg_marquardt(
-                flat.get(),
-                residual.point_residual(flat),
-                lm_sample,
-                config.lm_steps,
-                points,
-                damping=config.lm_damping,
-                max_time=left,
-                on_step=on_step,
-                min_progress=config.lm_min_progress,
-                stall_windows=config.lm_stall_windows,
-                desc=desc,
-                jacobian=residual.jacobian(),
-            )
-            flat.set(result.theta)
-            iterations = result.steps
-            hist.final_loss = result.loss
-            if config.adam_steps == 0 or result.stop_reason == "max_time":
-                hist.stop_reason = result.stop_reason
-    hist.wall_time = time.perf_counter() - start
-    hist.record(step + evals + iterations, hist.final_loss, hist.wall_time, "final")
-    bar.close()
-    return hist.history()
+            outcome = phase.run(objective, tracker)
+            loss, reason = outcome.loss, outcome.stop_reason or reason
+    finally:
+        tracker.bar.close()
+    wall_time = tracker.elapsed()
+    tracker.record(tracker.done, loss, "final", wall=wall_time)
+    return TrainHistory(tracker.step, tracker.loss, tracker.wall, tracker.phase, reason, wall_time, loss)
 
 
 def _generator(seed: int) -> torch.Generator:
@@ -463,17 +293,24 @@ def train_finite_horizon(
                 io = perm_o[b::n_batches]
                 yield pool.take(idx), t_flow[idx], bnd.take(ib), t_origin[io]
 
-    lm = None
-    if config.lm_steps > 0:
+    def lm_sample(size):
+        flow = pool.take(_randint(gen, len(pool), size, device))
+        t = _uniform(gen, size, T, dtype, device)
+        return res.point_arguments(flow, t)
 
-        def lm_sample(size):
-            flow = pool.take(_randint(gen, len(pool), size, device))
-            t = _uniform(gen, size, T, dtype, device)
-            return res.point_arguments(flow, t)
-
-        lm = (FlatParameters(model.net), res, lm_sample)
-    params = [q for q in model.net.parameters()]
-    return _optimize(params, batch_loss, sample, epochs, config, desc, progress, lm)
+    objective = Objective(
+        list(model.net.parameters()),
+        batch_loss,
+        sample,
+        epochs,
+        config.sampling,
+        config.batch_size,
+        FlatParameters(model.net),
+        res,
+        lm_sample,
+        desc,
+    )
+    return run_phases(objective, config, progress)
 
 
 def train_steady_state(
@@ -510,11 +347,19 @@ def train_steady_state(
         for b in range(max(1, len(pool) // config.batch_size)):
             yield pool.take(perm[b * config.batch_size : (b + 1) * config.batch_size])
 
-    lm = None
-    if config.lm_steps > 0:
+    def lm_sample(size):
+        return res.point_arguments(sample(size), None)
 
-        def lm_sample(size):
-            return res.point_arguments(sample(size), None)
-
-        lm = (FlatParameters(model.net), res, lm_sample)
-    return _optimize(model.net.parameters(), res.loss, sample, epochs, config, desc, progress, lm)
+    objective = Objective(
+        list(model.net.parameters()),
+        res.loss,
+        sample,
+        epochs,
+        config.sampling,
+        config.batch_size,
+        FlatParameters(model.net),
+        res,
+        lm_sample,
+        desc,
+    )
+    return run_phases(objective, config, progress)

@@ -18,9 +18,9 @@ TRAIN = [
     "--preset",
     "quick",
     "--set",
-    "adam_steps=20",
+    "adam.steps=20",
     "--set",
-    "lbfgs_steps=0",
+    "lbfgs=off",
     "--set",
     "eval_points_per_dim=11",
     "--device",
@@ -76,7 +76,7 @@ def test_train_writes_checkpoint_and_reports_each_stage(trained):
     assert all(float(E) >= 0 for _, E in stages)
     sol = ph.load(path)
     assert sol.horizons == [0.5, 1.0] and [s.seed for s in sol.stages] == [3, 4]
-    assert sol.config.adam_steps == 20 and sol.config.lbfgs_steps == 0
+    assert sol.config.phases == (ph.Adam(steps=20, lr=5e-3),)  # adam.steps=20, lbfgs=off
     assert sol.provenance["seed"] == 3
     # the printed E of the last stage is the stored metric
     assert float(stages[-1][1]) == pytest.approx(sol.metrics["E"], rel=1e-4)
@@ -147,6 +147,11 @@ def test_evaluate_missing_or_corrupt_checkpoint(tmp_path, capsys):
     [
         pytest.param(["--param", "mass=2"], id="unknown-param-key"),
         pytest.param(["--set", "momentum=0.9"], id="unknown-set-field"),
+        pytest.param(["--set", "adam_steps=5"], id="flat-optimiser-field"),
+        pytest.param(["--set", "lm.steps=5"], id="phase-not-in-recipe"),
+        pytest.param(["--set", "adam.momentum=0.9"], id="unknown-phase-field"),
+        pytest.param(["--set", "adam.lr=-1"], id="invalid-phase-value"),
+        pytest.param(["--set", "sgd=off"], id="drop-missing-phase"),
         pytest.param(
             ["--device", "cuda"],
             id="cuda-unavailable",

@@ -16,14 +16,18 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUD
 LM = dict(
     width=8,
     depth=2,
-    lm_steps=8,
-    lm_points=200,
-    lm_points_coarse=None,
-    lm_min_progress=None,
+    phases=(ph.LevenbergMarquardt(steps=8, points=200, points_coarse=None, min_progress=None),),
     eval_points_per_dim=11,
     pool_size=2000,
 )
-ADAM = dict(width=16, depth=2, adam_steps=40, lbfgs_steps=5, batch_size=128, eval_points_per_dim=11, pool_size=2000)
+ADAM = dict(
+    width=16,
+    depth=2,
+    phases=(ph.Adam(steps=40, lr=5e-3), ph.LBFGS(steps=5, points=512)),
+    batch_size=128,
+    eval_points_per_dim=11,
+    pool_size=2000,
+)
 
 
 @pytest.fixture(scope="module")

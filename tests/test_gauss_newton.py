@@ -8,10 +8,9 @@ import torch
 import pinnhjb as ph
 from pinnhjb.gauss_newton import FlatParameters, levenberg_marquardt
 
-# 8 x 2 on (x, t): 113 weights; the coarse level's 60 points are fewer (the dual solve), lm_points more
-TINY_LM = dict(
-    width=8, depth=2, lm_steps=12, lm_points=200, lm_points_coarse=60, eval_points_per_dim=11, pool_size=2000
-)
+# 8 x 2 on (x, t): 113 weights; the coarse level's 60 points are fewer (the dual solve), the last level's 200 more
+LM = ph.LevenbergMarquardt(steps=12, points=200, points_coarse=60)
+TINY_LM = dict(width=8, depth=2, phases=(LM,), eval_points_per_dim=11, pool_size=2000)
 
 
 def _linear_problem(n_points: int, n_params: int, seed: int = 0):
@@ -119,37 +118,54 @@ def test_flat_parameters_round_trip():
 def test_default_recipe_is_levenberg_marquardt_and_refuses_the_soft_loss():
     cfg = ph.TrainConfig()
     assert cfg == ph.TrainConfig.preset("default")
-    assert cfg.lm_steps > 0 and cfg.adam_steps == 0 and cfg.ansatz and cfg.dtype == "float64"
-    assert ph.TrainConfig.preset("adam_lbfgs").lm_steps == 0
-    assert ph.TrainConfig.preset("paper", system="pendulum").lm_steps == 0
-    with pytest.raises(ValueError, match="ansatz"):
+    assert cfg.phases == (ph.LevenbergMarquardt(),) and cfg.ansatz and cfg.dtype == "float64"
+    assert [p.name for p in ph.TrainConfig.preset("adam_lbfgs").phases] == ["adam", "lbfgs"]
+    assert [p.name for p in ph.TrainConfig.preset("paper", system="pendulum").phases] == ["adam"]
+    with pytest.raises(ValueError, match="needs ansatz=True"):
         ph.TrainConfig(ansatz=False)
-    with pytest.raises(ValueError, match="lm_min_progress"):
-        ph.TrainConfig(lm_min_progress=0.5)
-    with pytest.raises(ValueError, match="lm_points_coarse"):
-        ph.TrainConfig(lm_points=500)  # the coarse level (700 points) must have fewer points than the last
-    assert ph.TrainConfig(lm_points=500, lm_points_coarse=None).lm_points == 500
+    with pytest.raises(ValueError, match="min_progress"):
+        ph.LevenbergMarquardt(min_progress=0.5)
+    with pytest.raises(ValueError, match="points_coarse"):
+        ph.LevenbergMarquardt(points=500)  # the coarse level (700 points) must have fewer points than the last
+    assert ph.LevenbergMarquardt(points=500, points_coarse=None).points == 500
 
 
 def test_a_config_stored_before_levenberg_marquardt_loads_without_it():
-    old = ph.TrainConfig.preset("paper", system="pendulum").to_dict()
+    paper = ph.TrainConfig.preset("paper", system="pendulum")
+    old = _flat(paper)
     for key in ("lm_steps", "lm_points", "lm_damping", "lm_min_progress"):
         old.pop(key)
-    cfg = ph.TrainConfig.from_dict(old)
-    assert cfg.lm_steps == 0 and not cfg.ansatz
-    before_schedule = ph.TrainConfig().to_dict()
+    assert ph.TrainConfig.from_dict(old) == paper
+    before_schedule = _flat(ph.TrainConfig())
     for key in ("lm_points_coarse", "lm_stall_windows"):
         before_schedule.pop(key)
     cfg = ph.TrainConfig.from_dict(before_schedule)  # trained on lm_points throughout, stall span of three windows
-    assert cfg.lm_points_coarse is None and cfg.lm_stall_windows == 3
+    assert cfg.phases == (ph.LevenbergMarquardt(points_coarse=None, stall_windows=3),)
     assert ph.TrainConfig.from_dict(ph.TrainConfig().to_dict()) == ph.TrainConfig()
+
+
+def _flat(config: ph.TrainConfig) -> dict:
+    """``config`` as a checkpoint stored it when the optimisers were flat fields (every field, unused ones too)."""
+    d = {k: v for k, v in config.to_dict().items() if k != "phases"}
+    d.update(adam_steps=0, lr=2e-3, schedule="cosine", lr_final_ratio=0.01, lr_decay=0.0, stop_loss=None)
+    d.update(lbfgs_steps=0, lbfgs_points=4000)
+    d.update(lm_steps=0, lm_points=1500, lm_points_coarse=700, lm_damping=1e-3, lm_min_progress=2.0)
+    d.update(lm_stall_windows=2)
+    for p in config.phases:
+        prefix = {"adam": "", "lbfgs": "lbfgs_", "lm": "lm_"}[p.name]
+        for key, value in p.to_dict().items():
+            if key == "steps":
+                d[f"{p.name}_steps"] = value
+            elif key != "name":
+                d[prefix + key] = value
+    return d
 
 
 def test_a_levenberg_marquardt_stage_beats_adam_on_the_same_network():
     """Same tiny network, same seed: a dozen LM iterations leave a far smaller residual than 150 Adam steps."""
     pendulum = ph.systems.pendulum()
     lm = ph.FiniteHorizonSolver(pendulum, ph.TrainConfig(**TINY_LM), seed=0, device="cpu", progress=False).solve(1.0)
-    adam_cfg = ph.TrainConfig(**{**TINY_LM, "lm_steps": 0, "adam_steps": 150, "lr": 5e-3, "batch_size": 200})
+    adam_cfg = ph.TrainConfig(**{**TINY_LM, "phases": (ph.Adam(steps=150, lr=5e-3),), "batch_size": 200})
     adam = ph.FiniteHorizonSolver(pendulum, adam_cfg, seed=0, device="cpu", progress=False).solve(1.0)
     h = lm.stages[0].history
     assert "lm" in h.phase and h.loss[-1] < 0.05 * h.loss[0]
@@ -169,7 +185,9 @@ def test_levenberg_marquardt_is_deterministic_and_extends():
 
 
 def test_steady_state_baseline_trains_with_levenberg_marquardt():
-    cfg = ph.TrainConfig(**{**TINY_LM, "lm_points_coarse": None})  # 12 iterations: too few to leave a coarse level
+    cfg = ph.TrainConfig(
+        **{**TINY_LM, "phases": (LM.replace(points_coarse=None),)}
+    )  # 12 iterations: too few to leave a coarse level
     sol = ph.SteadyStateSolver(ph.systems.pendulum(), cfg, seed=0, device="cpu", progress=False).solve()
     h = sol.history
     assert "lm" in h.phase and h.final_loss < 0.25 * h.loss[0]
@@ -178,22 +196,23 @@ def test_steady_state_baseline_trains_with_levenberg_marquardt():
 @pytest.mark.parametrize("min_progress, expected", [(2.0, (60, 200)), (None, (200,))])
 def test_training_passes_the_point_schedule_only_with_the_stall_rule(monkeypatch, min_progress, expected):
     """The coarse level ends on a stall: without the stall rule a stage would never leave it, so it trains on
-    lm_points throughout."""
+    the last level's points throughout."""
     seen = []
-    real = ph.training.levenberg_marquardt
+    real = ph.optimizers.levenberg_marquardt
 
     def spy(theta, point_residual, sample, steps, points, **kw):
         seen.append(tuple(points))
         return real(theta, point_residual, sample, steps, points, **kw)
 
-    monkeypatch.setattr("pinnhjb.training.levenberg_marquardt", spy)
-    cfg = ph.TrainConfig(**{**TINY_LM, "lm_steps": 3, "lm_min_progress": min_progress})
+    monkeypatch.setattr("pinnhjb.optimizers.levenberg_marquardt", spy)
+    cfg = ph.TrainConfig(**{**TINY_LM, "phases": (LM.replace(steps=3, min_progress=min_progress),)})
     ph.FiniteHorizonSolver(ph.systems.pendulum(), cfg, seed=0, device="cpu", progress=False).solve(0.5)
     assert seen == [expected]
 
 
 def test_max_time_stops_the_levenberg_marquardt_phase():
-    cfg = ph.TrainConfig(**{**TINY_LM, "lm_steps": 10_000, "max_time": 0.5, "lm_min_progress": None})
+    lm = LM.replace(steps=10_000, min_progress=None)
+    cfg = ph.TrainConfig(**{**TINY_LM, "phases": (lm,), "max_time": 0.5})
     sol = ph.FiniteHorizonSolver(ph.systems.pendulum(), cfg, seed=0, device="cpu", progress=False).solve(1.0)
     assert sol.stages[0].history.stop_reason == "max_time"
     assert sol.stages[0].history.step[-1] < 10_000

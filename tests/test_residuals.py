@@ -282,7 +282,7 @@ def test_soft_form_is_mse_e_plus_mse_b_plus_mse_in():
 
 def test_training_refuses_a_form_for_the_other_kind_of_model():
     system = ph.systems.quartic()
-    cfg = ph.TrainConfig.preset("quick", adam_steps=1, lbfgs_steps=0, pool_size=64, batch_size=32)
+    cfg = ph.TrainConfig.preset("quick", phases=(ph.Adam(steps=1),), pool_size=64, batch_size=32)
     soft = FiniteHorizonValue(2, 0.5, system.train_domain, width=4, depth=1, ansatz=False)
     with pytest.raises(ValueError, match="ansatz"):
         training.train_finite_horizon(system, soft, cfg, progress=False, residual="hjbt")
@@ -336,10 +336,7 @@ def test_a_new_pde_form_is_one_class_and_a_registration_line(monkeypatch):
         width=8,
         depth=2,
         pool_size=2000,
-        lm_steps=40,
-        lm_points=300,
-        lm_points_coarse=None,
-        lm_min_progress=None,
+        phases=(ph.LevenbergMarquardt(steps=40, points=300, points_coarse=None, min_progress=None),),
     )
     history = training.train_finite_horizon(system, model, cfg, seed=0, progress=False, residual="uncontrolled_cost")
     after = float((form.evaluate(x, t) ** 2).mean())

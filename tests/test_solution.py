@@ -16,7 +16,7 @@ import pinnhjb as ph
 from pinnhjb.solution import FiniteHorizonSolution, Stage, SteadyStateSolution
 from pinnhjb.training import TrainHistory
 
-FAST = dict(adam_steps=5, lbfgs_steps=0, eval_points_per_dim=11)
+FAST = dict(phases=(ph.Adam(steps=5, lr=5e-3),), eval_points_per_dim=11)
 
 
 def config(**overrides) -> ph.TrainConfig:

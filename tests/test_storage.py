@@ -12,7 +12,7 @@ from pinnhjb.solution import FiniteHorizonSolution, Stage
 from pinnhjb.storage import FORMAT, CheckpointError
 from pinnhjb.training import TrainHistory
 
-FAST = dict(adam_steps=30, lbfgs_steps=0, eval_points_per_dim=11)
+FAST = dict(phases=(ph.Adam(steps=30, lr=5e-3),), eval_points_per_dim=11)
 PROVENANCE_KEYS = {"torch", "numpy", "pinnhjb", "created"}
 
 
@@ -99,7 +99,9 @@ def test_steady_state_round_trip(saved, steady, x_test):
 
 def test_loaded_solution_can_be_extended(saved, two_stage, config):
     loaded = ph.load(saved["fh"])
-    solver = ph.FiniteHorizonSolver(loaded.system, config.replace(adam_steps=2), seed=4, device="cpu", progress=False)
+    solver = ph.FiniteHorizonSolver(
+        loaded.system, config.with_phase("adam", steps=2), seed=4, device="cpu", progress=False
+    )
     longer = solver.extend(loaded, to=1.5)
     x = torch.rand(8, 2)
     with torch.no_grad():
@@ -129,7 +131,7 @@ def lq_float64(tmp_path_factory):
     """A float64 solution (two Adam steps, so its weights are not float32 numbers) on a registered LQ system."""
     A, B = np.array([[0.0, 1.0], [-1.0, 0.5]]), np.array([[0.0], [1.0]])
     system = ph.systems.linear_quadratic(A, B, np.eye(2), [[1.0]], domain=[[-1, 1], [-1, 1]], name="osc")
-    config = ph.TrainConfig.preset("quick", dtype="float64", adam_steps=2, lbfgs_steps=0, eval_points_per_dim=5)
+    config = ph.TrainConfig.preset("quick", dtype="float64", phases=(ph.Adam(steps=2, lr=5e-3),), eval_points_per_dim=5)
     sol = ph.FiniteHorizonSolver(system, config, device="cpu", progress=False).solve(0.5)
     return sol, ph.save(sol, tmp_path_factory.mktemp("lq") / "lq.pt")
 
@@ -173,7 +175,7 @@ def test_load_with_other_architecture(saved, config):
         ph.load(saved["fh"], config=config.replace(width=64))
     with pytest.raises(CheckpointError, match="ansatz"):
         ph.load(saved["ss"], config=config.replace(ansatz=False))
-    ph.load(saved["fh"], config=config.replace(lr=1.0))  # training-only fields may differ
+    ph.load(saved["fh"], config=config.with_phase("adam", lr=1.0))  # training-only fields may differ
 
 
 def test_stored_weights_that_do_not_fit_the_config(saved, tmp_path):

@@ -14,13 +14,18 @@ import torch
 import pinnhjb as ph
 from pinnhjb.pinn import ValueTerminalCost
 
-FAST = dict(adam_steps=30, lbfgs_steps=0, eval_points_per_dim=11)
+
+def adam(**changes) -> tuple:
+    """The quick preset's Adam phase for 30 steps (with ``changes``), as a recipe."""
+    return (ph.Adam(**{"steps": 30, "lr": 5e-3, **changes}),)
+
+
+FAST = dict(phases=adam(), eval_points_per_dim=11)
 PAPER_STYLE = dict(
     FAST,
+    phases=adam(schedule="inverse_time", lr_decay=0.002),
     ansatz=False,
     sampling="fixed",
-    schedule="inverse_time",
-    lr_decay=0.002,
     n_flow=1024,
     n_boundary=256,
     n_origin=256,
@@ -76,7 +81,7 @@ def test_paper_style_training_lowers_the_loss(pendulum):
     sol = solver(system=pendulum, **PAPER_STYLE).solve(0.5)
     stage = sol.stages[0]
     assert not stage.model.ansatz
-    assert sol.config.sampling == "fixed" and sol.config.schedule == "inverse_time"
+    assert sol.config.sampling == "fixed" and sol.config.phase("adam").schedule == "inverse_time"
     assert stage.history.final_loss < 0.9 * stage.history.loss[0]
     # V(0) = 0 is only a soft target here, so E carries a (nonnegative) boundary term
     assert sol.metrics["E_boundary"] >= 0.0 and sol.metrics["E"] >= sol.metrics["E_flow"]
@@ -84,14 +89,21 @@ def test_paper_style_training_lowers_the_loss(pendulum):
 
 def test_paper_stop_rule_ends_after_one_epoch(pendulum):
     # every mini-batch loss below a huge threshold: stop at the end of the first epoch of 1024 / 256 batches
-    sol = solver(system=pendulum, **{**PAPER_STYLE, "stop_loss": 1e9, "adam_steps": 1000, "log_every": 1}).solve(0.5)
+    sol = solver(
+        system=pendulum,
+        **{
+            **PAPER_STYLE,
+            "phases": adam(steps=1000, schedule="inverse_time", lr_decay=0.002, stop_loss=1e9),
+            "log_every": 1,
+        },
+    ).solve(0.5)
     hist = sol.stages[0].history
     assert hist.stop_reason == "stop_loss"
     assert [s for s, ph_ in zip(hist.step, hist.phase) if ph_ == "adam"] == [1, 2, 3, 4]
 
 
 def test_max_time_caps_adam(pendulum):
-    sol = solver(system=pendulum, max_time=1e-9, adam_steps=1000).solve(0.5)
+    sol = solver(system=pendulum, max_time=1e-9, phases=adam(steps=1000)).solve(0.5)
     assert sol.stages[0].history.stop_reason == "max_time"
     assert sol.stages[0].history.step[-1] == 1
 
@@ -115,11 +127,11 @@ class _RecordingBar:
 @pytest.mark.parametrize("phase", ["adam", "lbfgs", "lm"])
 def test_progress_bar_shows_the_latest_loss(pendulum, monkeypatch, phase):
     bars = []
-    monkeypatch.setattr("pinnhjb.training.tqdm", lambda *a, **k: bars.append(_RecordingBar()) or bars[-1])
+    monkeypatch.setattr("pinnhjb.optimizers.tqdm", lambda *a, **k: bars.append(_RecordingBar()) or bars[-1])
     steps = {
-        "adam": dict(adam_steps=7),
-        "lbfgs": dict(adam_steps=0, lbfgs_steps=7),
-        "lm": dict(adam_steps=0, lm_steps=7, lm_points=64, lm_points_coarse=None, lm_min_progress=None),
+        "adam": dict(phases=adam(steps=7)),
+        "lbfgs": dict(phases=(ph.LBFGS(steps=7, points=512),)),
+        "lm": dict(phases=(ph.LevenbergMarquardt(steps=7, points=64, points_coarse=None, min_progress=None),)),
     }[phase]
     config = ph.TrainConfig.preset("quick", **{**FAST, "log_every": 5, "dtype": "float64", **steps})
     sol = ph.FiniteHorizonSolver(pendulum, config, seed=0, device="cpu", progress=True).solve(0.5)
@@ -210,8 +222,8 @@ def test_value_time_outside_horizon_is_rejected(chain, x_test):
 
 
 def test_warm_start_copies_previous_weights(pendulum):
-    first = solver(system=pendulum, adam_steps=3).solve(0.5)
-    extended = solver(system=pendulum, adam_steps=0).extend(first, to=1.0)
+    first = solver(system=pendulum, phases=adam(steps=3)).solve(0.5)
+    extended = solver(system=pendulum, phases=()).extend(first, to=1.0)
     assert_same_weights(extended.stages[1].model.net, first.stages[0].model.net)
 
 
@@ -297,19 +309,46 @@ def test_steady_state_solver(pendulum):
         ("depth", 0),
         ("batch_size", 0),
         ("pool_size", 0),
-        ("adam_steps", -1),
-        ("lbfgs_steps", -1),
-        ("lr", 0.0),
-        ("lr", float("nan")),
         ("log_every", 0),
         ("dtype", "float16"),
         ("sampling", "random"),
-        ("schedule", "step"),
+        ("phases", (ph.Adam(), "lbfgs")),
     ],
 )
 def test_train_config_rejects_bad_fields(field, value):
     with pytest.raises(ValueError, match=field):
         ph.TrainConfig(**{field: value})
+
+
+@pytest.mark.parametrize(
+    "phase, field, value",
+    [
+        (ph.Adam, "steps", 0),
+        (ph.Adam, "lr", 0.0),
+        (ph.Adam, "lr", float("nan")),
+        (ph.Adam, "schedule", "step"),
+        (ph.Adam, "stop_loss", -1.0),
+        (ph.LBFGS, "steps", -1),
+        (ph.LBFGS, "points", 0),
+        (ph.LevenbergMarquardt, "steps", 1.5),
+        (ph.LevenbergMarquardt, "damping", 0.0),
+        (ph.LevenbergMarquardt, "min_progress", 0.5),
+    ],
+)
+def test_phases_reject_bad_fields(phase, field, value):
+    with pytest.raises(ValueError, match=rf"invalid {phase.__name__} field\(s\) \['{field}'\]"):
+        phase(**{field: value})
+
+
+def test_flat_optimiser_fields_are_refused_with_the_phase_to_use():
+    with pytest.raises(TypeError, match=r"with_phase\('adam', steps=...\)"):
+        ph.TrainConfig.preset("quick", adam_steps=7)
+    with pytest.raises(TypeError, match=r"with_phase\('lm', damping=...\)"):
+        ph.TrainConfig().replace(lm_damping=1e-2)
+    with pytest.raises(KeyError, match="no 'adam' phase"):
+        ph.TrainConfig().with_phase("adam", steps=3)
+    with pytest.raises(ValueError, match="unknown LevenbergMarquardt field"):
+        ph.TrainConfig().with_phase("lm", step=3)
 
 
 def test_train_config_fixed_data_needs_enough_flow_points():
@@ -323,9 +362,17 @@ def test_train_config_presets():
     with pytest.raises(KeyError, match="paper preset"):
         ph.TrainConfig.preset("paper", system="lq")
     paper = ph.TrainConfig.preset("paper", system="quartic")
-    assert (paper.width, paper.lr, paper.stop_loss, paper.ansatz, paper.sampling) == (250, 0.01, 1e-4, False, "fixed")
-    quick = ph.TrainConfig.preset("quick", adam_steps=7)
-    assert quick.adam_steps == 7 and quick.width == 32
+    adam_phase = paper.phase("adam")
+    assert (paper.width, adam_phase.lr, adam_phase.stop_loss, paper.ansatz, paper.sampling) == (
+        250,
+        0.01,
+        1e-4,
+        False,
+        "fixed",
+    )
+    quick = ph.TrainConfig.preset("quick").with_phase("adam", steps=7)
+    assert quick.phase("adam") == ph.Adam(steps=7, lr=5e-3) and quick.width == 32
+    assert quick.without_phase("lbfgs").phases == (ph.Adam(steps=7, lr=5e-3),)
     assert ph.TrainConfig.from_dict(quick.to_dict()) == quick
     assert quick.replace(width=8).width == 8
     with pytest.raises(ValueError, match="unknown TrainConfig field"):
@@ -335,7 +382,7 @@ def test_train_config_presets():
 
 
 def test_solver_accepts_preset_name(pendulum):
-    assert ph.FiniteHorizonSolver(pendulum, "paper", progress=False, device="cpu").config.lr == 0.005
+    assert ph.FiniteHorizonSolver(pendulum, "paper", progress=False, device="cpu").config.phase("adam").lr == 0.005
     with pytest.raises(TypeError, match="config"):
         ph.FiniteHorizonSolver(pendulum, 3, device="cpu")
 
@@ -359,8 +406,8 @@ def test_final_loss_is_the_last_adam_loss_regardless_of_logging(pendulum):
 
 
 def test_float64_warm_start_copies_previous_weights_exactly(pendulum):
-    first = solver(system=pendulum, adam_steps=3, dtype="float64").solve(0.5)
-    extended = solver(system=pendulum, adam_steps=0, dtype="float64").extend(first, to=1.0)
+    first = solver(system=pendulum, phases=adam(steps=3), dtype="float64").solve(0.5)
+    extended = solver(system=pendulum, phases=(), dtype="float64").extend(first, to=1.0)
     assert_same_weights(extended.stages[1].model.net, first.stages[0].model.net)
 
 

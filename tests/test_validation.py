@@ -32,19 +32,30 @@ from pinnhjb.training import StatePool, TrainHistory
 
 # ------------------------------------------------------------------------------ tiny systems and configs
 LM = ph.TrainConfig.preset(
-    "default", width=4, depth=1, lm_steps=3, lm_points=64, lm_points_coarse=None, pool_size=256, eval_points_per_dim=5
+    "default",
+    width=4,
+    depth=1,
+    phases=(ph.LevenbergMarquardt(steps=3, points=64, points_coarse=None),),
+    pool_size=256,
+    eval_points_per_dim=5,
 )
 ADAM = ph.TrainConfig.preset(
-    "quick", width=4, depth=1, adam_steps=3, lbfgs_steps=0, pool_size=256, batch_size=32, eval_points_per_dim=5
+    "quick",
+    width=4,
+    depth=1,
+    phases=(ph.Adam(steps=3, lr=5e-3),),
+    pool_size=256,
+    batch_size=32,
+    eval_points_per_dim=5,
 )
-LBFGS = ADAM.replace(adam_steps=0, lbfgs_steps=2, lbfgs_points=32)
+LBFGS = ADAM.replace(phases=(ph.LBFGS(steps=2, points=32),))
 CLI_TINY = [
     "--preset",
     "quick",
     "--set",
-    "adam_steps=2",
+    "adam.steps=2",
     "--set",
-    "lbfgs_steps=0",
+    "lbfgs=off",
     "--set",
     "width=4",
     "--set",
@@ -254,8 +265,9 @@ CASES = [
     ("seed-bool", lambda c: solver(seed=True), ValueError, r"seed must be an integer"),
     ("width-2.5", lambda c: ph.TrainConfig(width=2.5), ValueError, r"width=2\.5 \(expected an integer >= 1\)"),
     ("batch-size-True", lambda c: ph.TrainConfig(batch_size=True), ValueError, r"batch_size=True \(expected an int"),
-    ("lm-damping-inf", lambda c: ph.TrainConfig(lm_damping=math.inf), ValueError, r"lm_damping=inf \(expected a fin"),
-    ("lr-nan", lambda c: ph.TrainConfig(lr=math.nan), ValueError, r"lr=nan"),
+    ("lm-damping-inf", lambda c: ph.LevenbergMarquardt(damping=math.inf), ValueError, r"damping=inf \(expected a fin"),
+    ("lr-nan", lambda c: ph.Adam(lr=math.nan), ValueError, r"lr=nan"),
+    ("phase-not-a-phase", lambda c: ph.TrainConfig(phases=("adam",)), ValueError, r"phases=\('adam',\)"),
     ("eval-points-1", lambda c: ph.TrainConfig(eval_points_per_dim=1), ValueError, r"eval_points_per_dim=1"),
     ("ansatz-string", lambda c: ph.TrainConfig(ansatz="yes"), ValueError, r"ansatz='yes' \(expected True or False\)"),
     (
@@ -360,7 +372,9 @@ CASES = [
     ),
     (
         "saturated-network",
-        lambda c: one_stage(solver(scaled(q_scale=1e6, R=1e-8), LM.replace(width=24, depth=3, lm_steps=4))),
+        lambda c: one_stage(
+            solver(scaled(q_scale=1e6, R=1e-8), LM.replace(width=24, depth=3).with_phase("lm", steps=4))
+        ),
         RuntimeWarning,
         r"stage 1 \(mine T=0->0\.5\): E = .* is no better than E of V = 0",
     ),
