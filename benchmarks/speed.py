@@ -8,7 +8,7 @@ One run trains, in this one process, one after the other (so every method sees t
 * ``default``        our default recipe (``TrainConfig.preset("default")``: 3 x 24 tanh in float64, Levenberg-
                      Marquardt on fresh points, stall rule) on an extension chain.
 * ``adam_lbfgs``     our first-order recipe (``TrainConfig.preset("adam_lbfgs")``: 3 x 100 in float32, Adam then
-                     L-BFGS, the default before Levenberg-Marquardt), same code and chain: the optimiser's share.
+                     L-BFGS), same code and chain: the optimiser's share.
 * ``deepxde``        DeepXDE (PyTorch backend) in its natural set-up: the whole horizon in one stage on
                      ``GeometryXTime(Rectangle, TimeDomain)`` in reversed time s = T - t, the terminal condition
                      V(x, s=0) = 0 and V(0, s) = 0 soft ``PointSetBC`` s; the total optimiser
@@ -30,7 +30,7 @@ one stage's budget).
 DeepXDE offers first-order optimisers and L-BFGS, not Levenberg-Marquardt, so its runs get the ``adam_lbfgs``
 recipe's optimiser settings: inputs scaled to [-1, 1], float32, that recipe's number of fresh flow points per Adam
 step, learning rate and cosine decay, then L-BFGS on its number of fixed points; ``paper`` uses the paper's own
-network (3 x 250 for this system), data, optimiser and stop rule. E is eq. (IHJB_res), mean over a 101 x 101
+network (3 x 250 for this system), data, optimiser and stop rule. E is the horizon check (eq-e), mean over a 101 x 101
 grid of Omega of E_e(x)^2 plus V(0)^2, computed for every method by the one function :func:`measure`
 (``pinnhjb.metrics``); E is checked after every stage of a chain and every ``--checkpoint-every`` Adam steps /
 ``--lbfgs-checkpoint-every`` L-BFGS iterations of the one-stage run, with the training clock paused. Times to a
@@ -120,7 +120,7 @@ def describe(method: str, step: float | None) -> str:
 
 
 def measure(system, value_fn) -> dict:
-    """E (eq. (IHJB_res), 101 x 101 grid over Omega) and the true errors against V*, mu*: the ONE function used
+    """E (eq-e, 101 x 101 grid over Omega) and the true errors against V*, mu*: the ONE function used
     for every method. ``value_fn``: batched torch callable x (N, 2) float64 on the CPU -> V(x, 0) (N,),
     differentiable (it moves x to its model's device and back). The grid is made on the CPU whatever the default
     device (DeepXDE's runs on a GPU set it to CUDA)."""
@@ -596,7 +596,8 @@ def write_tables(summary: dict, meta: dict, out_dir: Path):
         f"seed {meta['seed']}; paper recipe capped at {meta['paper_stage_seconds'] * meta['budget_scale']:g} s per "
         f"stage; created {meta['created']}.",
         "",
-        "E is eq. (IHJB_res): mean over a 101 x 101 grid of Omega = [-1.2, 1.2]^2 of E_e(x)^2, plus V(0)^2, "
+        "E is the horizon check (the book's eq-e): mean over a 101 x 101 grid of Omega = [-1.2, 1.2]^2 of E_e(x)^2, "
+        "plus V(0)^2, "
         "computed by the same function for every method and checked after every stage (chains) or every "
         f"{meta['checkpoint_every']} Adam steps / {meta['lbfgs_checkpoint_every']} L-BFGS iterations (one stage, "
         "before budget scaling), training clock paused. Times are training wall seconds to the first check at "

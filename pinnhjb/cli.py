@@ -240,6 +240,7 @@ def _points_per_dim(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m pinnhjb`` (sub-commands train, evaluate, reproduce)."""
     p = argparse.ArgumentParser(prog="python -m pinnhjb", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
     t = sub.add_parser("train", help="train a finite-horizon PINN (optionally extended) or the steady-state PINN")
@@ -286,6 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run the command line; the exit status (0 success, 2 an error in the arguments or in training, 130 interrupted).
+
+    * ``argv``: the arguments; None: ``sys.argv[1:]``.
+    """
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -1,25 +1,24 @@
-"""Levenberg-Marquardt (damped Gauss-Newton) on a PINN's residuals: the optimiser of our default recipe.
+"""Levenberg-Marquardt (damped Gauss-Newton) on a PINN's residuals: the step of our default recipe's optimiser.
 
-The loss of Algorithm 1 under the ansatz is a mean of squared residuals, mean_i F_e(x_i, t_i; theta)^2, so its
-Gauss-Newton model needs only the Jacobian J (N x P) of the residual vector in the weights. Each iteration
-draws fresh collocation points, forms J (by default with ``torch.func``: ``jacrev`` of one point's residual,
-``vmap``-ed over the points; the residual itself holds first derivatives of the network, so J holds mixed second
-derivatives, all by autograd; training passes the residual form's own per-point residual and its faster
-structured Jacobian: :meth:`pinnhjb.residuals.Residual.point_residual`, :meth:`~pinnhjb.residuals.Residual.jacobian`),
-and solves
+Under the ansatz the loss of Algorithm 1 is a mean of squared residuals, mean_i F_e(x_i, t_i; theta)^2, so its
+Gauss-Newton model needs only the Jacobian J (N x P) of the residual vector in the weights. Each iteration:
 
-    (J'J + lambda I) delta = -J'r          (or, when N < P, delta = -J'(JJ' + lambda I)^{-1} r, the same step)
+* draws fresh collocation points;
+* forms J: by default ``vmap`` of ``jacrev`` of one point's residual (the residual holds first derivatives of the
+  network, so J holds mixed second derivatives); training passes the residual form's faster structured Jacobian
+  (:meth:`pinnhjb.residuals.Residual.jacobian`);
+* solves, by Cholesky, in the smaller of the two spaces::
 
-by Cholesky. The step is kept when it lowers the loss on the same points, and lambda shrinks; otherwise
-lambda grows and the step is retried (Levenberg's rule). For small networks (about 10^3 weights) an
-iteration costs about as much as a few dozen Adam steps and does far more: see ``benchmarks/``.
+      (J'J + lambda I) delta = -J'r,   or, when N < P,   delta = -J'(JJ' + lambda I)^{-1} r
 
-The number of points may grow in a schedule, e.g. (700, 1500) for a network of about 1300 weights: the early
-iterations, far from the solution, take fewer points than weights (the cheap dual solve: its cost grows with
-N^2 P instead of N P^2, and J itself with N), which fits each batch almost exactly and so stalls at a noise
-floor; once the loss stalls there, the iterations move to more points than weights, where a step fits the
-residual rather than one batch, and polish to the accuracy a full-size batch gives, in a fraction of the time
-that full-size batches from the start take.
+* keeps the step when it lowers the loss on the same points (lambda shrinks), else raises lambda and retries
+  (Levenberg's rule).
+
+The number of points may grow in a schedule, e.g. (700, 1500) for a network of about 1300 weights. The early
+iterations take fewer points than weights: the dual solve is cheap (its cost grows with N^2 P instead of N P^2)
+and fits each batch almost exactly, so the loss stalls at a noise floor. The iterations then move to more points
+than weights, where a step fits the residual rather than one batch. :class:`pinnhjb.optimizers.LevenbergMarquardt`
+is the phase that runs it; ``benchmarks/`` times it.
 """
 
 from __future__ import annotations
@@ -62,9 +61,11 @@ class FlatParameters:
         self.sizes = [p.numel() for _, p in named]
 
     def get(self) -> Tensor:
+        """The weights as one flat vector (a copy)."""
         return torch.cat([p.detach().reshape(-1) for p in self.module.parameters()])
 
     def set(self, theta: Tensor) -> None:
+        """Copy the flat vector ``theta`` into the module's weights."""
         with torch.no_grad():
             for p, chunk in zip(self.module.parameters(), torch.split(theta, self.sizes)):
                 p.copy_(chunk.view(p.shape))
@@ -74,8 +75,18 @@ class FlatParameters:
         return {prefix + k: c.view(s) for k, s, c in zip(self.names, self.shapes, torch.split(theta, self.sizes))}
 
 
-@dataclass
+@dataclass(frozen=True)
 class LMResult:
+    """What :func:`levenberg_marquardt` returns.
+
+    * ``theta``: the final weights.
+    * ``loss``: the loss of the last accepted iteration.
+    * ``damping``: the final damping lambda.
+    * ``steps``: the iterations run.
+    * ``rejected``: the steps rejected (and retried with more damping).
+    * ``stop_reason``: ``"lm_steps"`` (ran ``steps``), ``"stalled"`` or ``"max_time"``.
+    """
+
     theta: Tensor
     loss: float
     damping: float
@@ -102,17 +113,26 @@ def levenberg_marquardt(
 ) -> LMResult:
     """Minimise mean_i point_residual(theta, *batch_i)^2 over fresh batches from ``sample(points)``.
 
-    ``point_residual(theta, *args)`` is one point's residual (a scalar) with ``args`` the point's data (the
-    batch from ``sample`` is a tuple of tensors whose first dimension indexes the points). ``on_step(k, loss,
-    damping)`` is called after each iteration. Stops after ``steps`` iterations, at ``max_time`` seconds, or,
-    with ``min_progress``, once the loss has stalled: the loss (geometric mean over a ``window`` of
-    iterations, the points being fresh each time) fell by less than the factor ``min_progress`` over the last
-    ``stall_windows`` windows. ``points`` may be a growing schedule (n_1, n_2, ...): each stall moves on to the
-    next count (the stall rule starts afresh there), and only a stall at the last one stops. ``jacobian(theta,
-    *batch) -> (r, J)``, when given, is the batch's residual vector and its Jacobian by a faster route than the
-    default ``vmap(jacrev(point_residual))`` (it must agree with it: see :mod:`pinnhjb.jacobian`). The residual
-    forms of :mod:`pinnhjb.residuals` give both: ``point_residual(flat)``, ``jacobian()`` and, for ``sample``,
-    ``point_arguments(data, t)``.
+    * ``theta``: the starting weights, one flat vector.
+    * ``point_residual``: ``(theta, *args) ->`` one point's residual (a scalar), ``args`` the point's data.
+    * ``sample``: a number of points -> a tuple of tensors whose first dimension indexes the points.
+    * ``steps``: at most this many iterations.
+    * ``points``: the points per iteration, or a growing schedule (n_1, n_2, ...): each stall moves on to the next
+      count (the stall rule starts afresh there), and only a stall at the last one stops.
+    * ``damping``: the initial damping lambda.
+    * ``max_time``: stop after this many seconds (None: no cap).
+    * ``on_step``: called as ``on_step(k, loss, damping)`` after each iteration.
+    * ``max_retries``: rejected steps (damping raised) before an iteration gives up.
+    * ``min_progress``: stop once the loss has stalled: its geometric mean over a window fell by less than this
+      factor over the last ``stall_windows`` windows (the points are fresh each time); None: no stall rule.
+    * ``window``: the iterations of one window.
+    * ``stall_windows``: the windows of the stall rule.
+    * ``desc``: the stage's label, for errors.
+    * ``jacobian``: ``(theta, *batch) -> (r, J)``, the batch's residual vector and its Jacobian by a faster route
+      than the default ``vmap(jacrev(point_residual))`` (it must agree with it: :mod:`pinnhjb.jacobian`).
+
+    The residual forms of :mod:`pinnhjb.residuals` give ``point_residual(flat)``, ``jacobian()`` and, for
+    ``sample``, ``point_arguments(data, t)``. Returns an :class:`LMResult`.
     """
     schedule = [int(n) for n in points] if isinstance(points, Sequence) else [int(points)]
     if (

@@ -193,6 +193,11 @@ class Phase:
     steps: int
 
     def run(self, objective: Objective, tracker: Tracker) -> PhaseOutcome:
+        """Optimise ``objective.params`` in place; what the phase reports.
+
+        * ``objective``: the stage's loss and samplers.
+        * ``tracker``: the stage's log, progress bar and clock.
+        """
         raise NotImplementedError
 
     def to_dict(self) -> dict:

@@ -89,7 +89,11 @@ def _keep(exc: BaseException, solution) -> None:
 
 
 def make_terminal_cost(terminal_cost, n: int | None = None) -> torch.nn.Module:
-    """phi from ``None`` (zero), a (n, n) matrix P (x'Px), a torch callable, or a terminal-cost module."""
+    """The terminal cost phi as a module.
+
+    * ``terminal_cost``: None (zero), an (n, n) matrix P (phi = x'Px), a torch callable, or a terminal-cost module.
+    * ``n``: the state dimension, to check P's shape.
+    """
     if terminal_cost is None:
         return ZeroTerminalCost()
     if isinstance(terminal_cost, torch.nn.Module):
@@ -160,6 +164,7 @@ class _Solver:
 
     @property
     def dtype(self) -> torch.dtype:
+        """The networks' dtype, from ``config.dtype``."""
         return DTYPES[self.config.dtype]
 
     def evaluate(self, solution) -> dict:
@@ -240,7 +245,11 @@ class FiniteHorizonSolver(_Solver):
         return sol
 
     def solve(self, horizon: float, terminal_cost=None) -> FiniteHorizonSolution:
-        """Algorithm 1: train v_T on Omega x [0, horizon] with terminal cost phi (default 0)."""
+        """Algorithm 1: train v_T on Omega x [0, horizon] (eq-hjbt); a chain of one stage.
+
+        * ``horizon``: T.
+        * ``terminal_cost``: phi; None (zero), an (n, n) matrix P (x'Px), a torch callable or a terminal-cost module.
+        """
         horizon = _number(horizon, "horizon")
         phi = make_terminal_cost(terminal_cost, self.system.n)
         stage = self._train_stage(horizon, 0.0, phi.to(self.device, self.dtype), None, 0)
@@ -253,12 +262,16 @@ class FiniteHorizonSolver(_Solver):
         step: float | None = None,
         callback: Callable[[FiniteHorizonSolution], None] | None = None,
     ) -> FiniteHorizonSolution:
-        """Theorem 2: extend ``solution`` from T to ``to`` in increments of ``step`` (default: one increment).
+        """Theorem 2: extend ``solution`` from its horizon T to ``to`` (eq-hjbinc); the longer chain.
 
-        Each new stage trains V' only on [0, step] with terminal cost V_T(., 0) (the previous stage's
-        frozen network), warm-started from its weights when ``config.warm_start``. ``callback`` is called
-        with the chain after every stage (e.g. to save a checkpoint). On KeyboardInterrupt the stages done
-        so far are returned with ``interrupted=True``.
+        * ``solution``: the chain to extend (not changed).
+        * ``to``: the new horizon, above T.
+        * ``step``: the length of each new stage; None: one stage of length ``to`` - T.
+        * ``callback``: called with the chain after every stage (e.g. to save a checkpoint).
+
+        Each new stage trains V' only on [0, step] with terminal cost V_T(., 0), the previous stage's frozen
+        network, warm-started from its weights when ``config.warm_start``. On KeyboardInterrupt the stages done so
+        far are returned with ``interrupted=True``.
         """
         if not isinstance(solution, FiniteHorizonSolution):
             raise TypeError(f"extend needs a FiniteHorizonSolution; got {type(solution).__name__}")
@@ -280,7 +293,7 @@ class FiniteHorizonSolver(_Solver):
                 f"MAX_STAGES_PER_CALL={MAX_STAGES_PER_CALL}; choose a larger step"
             )
         if solution.device != self.device or solution.dtype != self.dtype:
-            for s in solution.stages:  # as nn.Module.to did through the nested chain before
+            for s in solution.stages:  # every stage of the chain, each its own module
                 s.model.to(self.device, self.dtype)
         ends = list(np.arange(T + step, to, step)) + [to]
         ends = [e for e in ends if e > T + 1e-9]
@@ -315,12 +328,18 @@ class FiniteHorizonSolver(_Solver):
         terminal_cost=None,
         callback=None,
     ) -> FiniteHorizonSolution:
-        """Solve at ``first_horizon`` (default ``step``), then extend by ``step`` until E <= ``tol`` or
-        ``max_horizon`` is reached (the horizon check of Section 5.1). The per-stage report is
-        ``solution.summary()``; ``solution.converged`` says whether E met ``tol`` (when it did not by
-        ``max_horizon``, a warning says so; ``max_horizon=inf`` extends until it does).
+        """Solve, then extend one stage at a time until the horizon check E (eq-e) is at most ``tol``.
 
-        Choosing ``tol``: E (eq. (IHJB_res)) is the mean square of the steady-state HJB residual over a grid on
+        * ``tol``: the target for E.
+        * ``step``: the length of each stage.
+        * ``first_horizon``: the first stage's horizon; None: ``step``.
+        * ``max_horizon``: stop here even when E > ``tol`` (a warning says so); ``inf`` extends until E <= ``tol``.
+        * ``terminal_cost``: phi of the first stage, as in :meth:`solve`.
+        * ``callback``: called with the chain after every stage.
+
+        The per-stage report is ``solution.summary()``; ``solution.converged`` says whether E met ``tol``.
+
+        Choosing ``tol``: E (eq-e) is the mean square of the steady-state HJB residual over a grid on
         Omega (``config.eval_points_per_dim`` points per axis; a seeded Monte Carlo sample in high dimension,
         see :mod:`pinnhjb.metrics`), in the units of Q squared. Judge it against ``E_zero`` (E of V = 0 on the same
         points, in every row of ``summary()``): a ``tol`` of 1e-4 to 1e-6 times ``E_zero`` asks for a residual
@@ -359,13 +378,14 @@ class FiniteHorizonSolver(_Solver):
 
 
 class SteadyStateSolver(_Solver):
-    """The direct steady-state PINN on eq. (4) with V(0) = 0 (the paper's T = infinity baseline), trained
-    with the same network, data and optimiser budget as one finite-horizon stage.
+    """The direct steady-state PINN on the steady-state HJB (eq-hjb) with V(0) = 0 (the paper's T = infinity
+    baseline), trained with the same network, data and optimiser budget as one finite-horizon stage.
 
     Arguments as for :class:`FiniteHorizonSolver` (``evaluate`` computes the solution's metrics).
     """
 
     def solve(self) -> SteadyStateSolution:
+        """Train V(x) on the steady-state HJB residual with V(0) = 0; the result with its metrics."""
         cfg = self.config
         torch.manual_seed(self.seed)
         model = SteadyStateValue(

@@ -76,6 +76,7 @@ class TrainHistory:
             object.__setattr__(self, name, list(getattr(self, name)))
 
     def to_dict(self) -> dict:
+        """The history as plain data (checkpoints store it)."""
         return {
             "step": list(self.step),
             "loss": list(self.loss),
@@ -88,6 +89,7 @@ class TrainHistory:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainHistory:
+        """The history stored as ``d`` by :meth:`to_dict`."""
         return cls(**d)
 
 
@@ -150,6 +152,7 @@ class StatePool:
         return self.x.shape[0]
 
     def take(self, idx: Tensor) -> dict:
+        """The cached data of the states at ``idx``: x, f(x), g(x), Q(x) and, when cached, phi and its gradient."""
         out = {"x": self.x[idx], "fx": self.fx[idx], "gx": self.gx[idx], "qx": self.qx[idx]}
         if self.phi is not None:
             out["phi"] = self.phi[idx]
