@@ -103,7 +103,7 @@ def test_every_stored_checkpoint_migrates_to_the_phases_it_ran():
             min_progress=stored["lm_min_progress"],
             stall_windows=stored.get("lm_stall_windows", 3),  # and a stall span of three windows
         )
-        config = ph.TrainConfig.from_dict(stored)  # what ph.load does (test_storage and test_reproduce load them)
+        config = ph.TrainConfig.from_dict(stored)  # what ph.load does (test_storage and test_paper load them)
         assert config.phases == (expected,), path
         kinds.add("lm_points_coarse" in stored)
         assert ph.TrainConfig.from_dict(config.to_dict()) == config

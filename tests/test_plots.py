@@ -1,4 +1,5 @@
-"""Helpers the notebooks call: plane slices of a 3-D solution, exact LQ fields."""
+"""pinnhjb.plots: what the chapters draw (plane slices of a 3-D solution, exact LQ fields, time-to-accuracy
+lines, grouped bars)."""
 
 import matplotlib
 
