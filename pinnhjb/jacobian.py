@@ -1,17 +1,17 @@
 """Per-point Jacobians of first-order PDE residuals of an :class:`~pinnhjb.pinn.MLP`, in its flat weights, fast.
 
 Levenberg-Marquardt (:mod:`pinnhjb.gauss_newton`) needs J = d r / d theta (N x P) of the residual vector r. The
-plain way, ``vmap(jacrev(point_residual))``, is exact and general but, for the small networks of our default, a
-large share of each iteration, most of it in the overhead of batching many tiny operations.
-For a residual that uses the network's value and its first input derivatives only (the HJB residuals F_e,
-eq-fe, and E_e, eq-ee, of :mod:`pinnhjb.residuals` do), J has a structure that makes it cheap:
+plain way, ``vmap(jacrev(point_residual))``, is exact and general, but for small networks most of its time is
+the overhead of batching many tiny operations. For a residual that uses only the network's value and its first
+input derivatives (the residuals :eq:`eq-fe` and :eq:`eq-ee` of :mod:`pinnhjb.residuals`), J has a structure
+that makes it cheap:
 
 * forward: propagate the inputs z (M, d) and K input tangents dz (M, K, d) through the layers, keeping every
   linear layer's input (a, da) and output (h = a W' + b, dh = da W');
 * one reverse pass of sum_i r_i gives, per row, the cotangents of h and dh (each residual r_i depends on its own
   rows only, so the gradient of the sum holds every row's own derivative);
-* a layer's rows of J are then sums of outer products: dr/dW = g_h a' + sum_k g_dh[k] da[k]', dr/db = g_h, i.e.
-  one batched product per layer, (o x (K + 1)) times ((K + 1) x i) per residual.
+* a layer's rows of J are then sums of outer products, ``dr/dW = g_h a' + sum_k g_dh[k] da[k]'`` and
+  ``dr/db = g_h``: one batched product per layer, (o x (K + 1)) times ((K + 1) x i) per residual.
 
 Several network rows may feed one residual (the ansatz evaluates N(x, t) and N(0, t) per point): with
 ``copies = R`` the M = R N rows are R blocks of N, row i of every block feeding residual i, and the sums above run
@@ -49,13 +49,18 @@ def _activation_derivative(layer: nn.Module, h: Tensor, y: Tensor) -> Tensor:
 def residual_jacobian(
     mlp: MLP, theta: Tensor, z: Tensor, dz: Tensor, residual_of: Callable[[Tensor, Tensor], Tensor], copies: int = 1
 ) -> tuple[Tensor, Tensor]:
-    """Residuals r (N,) and their Jacobian J (N, P) in ``theta``, the MLP's weights flattened in
-    ``mlp.parameters()`` order (as :class:`pinnhjb.gauss_newton.FlatParameters` does).
+    """The residuals r (N,) and their Jacobian J (N, P) in the network's flat weights.
 
-    ``z`` (M, d): network inputs; ``dz`` (M, K, d): K input tangents per row (e.g. d z / d (x, t)).
-    ``residual_of(out, dout)`` maps the network's outputs ``out`` (M,) and their directional derivatives ``dout``
-    (M, K) to the residuals (N,), row by row: M = ``copies`` N, and row m of the network may feed residual
-    m mod N only. Both results are detached.
+    * ``mlp``: the network.
+    * ``theta``: (P,), its weights flattened in ``mlp.parameters()`` order (as
+      :class:`pinnhjb.gauss_newton.FlatParameters` does).
+    * ``z``: (M, d) network inputs.
+    * ``dz``: (M, K, d), K input tangents per row (e.g. d z / d (x, t)).
+    * ``residual_of``: ``(out, dout) -> r`` maps the network's outputs (M,) and their directional derivatives
+      (M, K) to the residuals (N,), row by row.
+    * ``copies``: M / N; row m of the network may feed residual m mod N only.
+
+    Returns r and J, both detached.
     """
     if z.ndim != 2 or dz.ndim != 3 or dz.shape[0] != z.shape[0] or dz.shape[2] != z.shape[1]:
         raise ValueError(f"need z (M, d) and dz (M, K, d); got {tuple(z.shape)} and {tuple(dz.shape)}")

@@ -1,21 +1,12 @@
-"""Linear-quadratic ground truth: algebraic and differential Riccati equations (numpy/scipy only).
+"""Linear-quadratic ground truth: the algebraic and differential Riccati equations (numpy/scipy only).
 
-For ``xdot = A x + B u`` with cost ``x'Qx + u'Ru`` the HJB equations of the paper have quadratic
-solutions, so every claim of the paper can be checked exactly in the LQ case:
+For ``xdot = A x + B u`` with cost ``x'Qx + u'Ru`` the paper's HJB equations have quadratic solutions, so
+every claim of the paper can be checked exactly:
 
-* Steady-state HJB (eq:HJB). With ``V(x) = x'Px`` it reduces to the algebraic Riccati equation
-  (ARE) ``A'P + PA + Q - P B R^{-1} B' P = 0``. *Every* symmetric ARE solution gives a solution of
-  eq:HJB with ``V(0) = 0`` -- the non-uniqueness that motivates the paper -- but only the
-  stabilizing one (:func:`care`) is the optimal value ``V*``; :func:`are_solutions` enumerates them.
-* Finite-horizon HJB (eq:HJBT) with terminal cost ``phi(x) = x' P_T x``. ``V_T(x, t) = x'P(t)x``
-  where ``-dP/dt = A'P + PA + Q - P B R^{-1} B' P``, ``P(T) = P_T`` (:func:`riccati_ode`), the
-  optimal value of eq:costT, with policy ``mu_T(x, t) = -R^{-1} B' P(t) x`` (eq:muTstar).
-* Convergence (Theorem th:ucon). For ``P_T = 0``, ``P(0)`` increases monotonically with the horizon
-  to the CARE solution (Lemma le:inc). For ``phi = psi + V*`` (``P_T = P_psi + P_care``) it
-  converges from above, ``P_care <= P(0) <= P_care + Phi' P_psi Phi`` with ``Phi`` the optimal
-  closed-loop transition matrix over [0, T] (Lemma le:ucon2, eq:final); the decrease is monotone
-  when ``P_T`` has a negative semidefinite Riccati residual (e.g. ``P_T = c P_care``, c >= 1), not
-  in general. Any PSD ``P_T`` lies between the two cases (eq:sandwich).
+* the steady-state HJB :eq:`eq-hjb` becomes the algebraic Riccati equation (ARE); every symmetric solution
+  solves it, only the stabilizing one (:func:`care`) is ``V*``; :func:`are_solutions` lists them all;
+* the finite-horizon HJB :eq:`eq-hjbt` becomes the Riccati ODE (:func:`riccati_ode`);
+* Theorem 1 and its bounds are checked exactly by :func:`convergence_bound`.
 """
 
 from __future__ import annotations
@@ -104,22 +95,32 @@ def _sym(P: Array) -> Array:
 
 
 # --------------------------------------------------------------------------------------------
-# algebraic Riccati equation (steady-state HJB, eq:HJB)
+# algebraic Riccati equation (steady-state HJB, eq-hjb)
 # --------------------------------------------------------------------------------------------
 def care(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike) -> Array:
-    """Stabilizing solution ``P`` of ``A'P + PA + Q - P B R^{-1} B' P = 0``.
+    """The stabilizing solution ``P`` of the ARE ``A'P + PA + Q - P B R^{-1} B' P = 0``.
 
-    ``V*(x) = x'Px`` is the optimal value of the infinite-horizon problem, the solution of the
-    steady-state HJB eq:HJB selected by stability (the ARE has other symmetric solutions, see
-    :func:`are_solutions`). Computed by ``scipy.linalg.solve_continuous_are``; requires
-    (A, B) stabilizable and (Q, A) detectable.
+    ``V*(x) = x'Px`` is the optimal value: the solution of the steady-state HJB :eq:`eq-hjb` that stability
+    selects (the other ARE solutions: :func:`are_solutions`). Computed by ``scipy.linalg.solve_continuous_are``.
+
+    * ``A``: (n, n); (A, B) stabilizable.
+    * ``B``: (n, m).
+    * ``Q``: (n, n), symmetric positive semidefinite; (Q, A) detectable.
+    * ``R``: (m, m), symmetric positive definite.
+
+    Returns P, (n, n) symmetric.
     """
     A_, B_, Q_, R_ = _validate(A, B, Q, R)
     return _sym(sla.solve_continuous_are(A_, B_, Q_, R_))
 
 
 def lqr_gain(B: ArrayLike, R: ArrayLike, P: ArrayLike) -> Array:
-    """``K = R^{-1} B' P`` (m x n), so that ``u = -K x = -1/2 R^{-1} B' grad V`` (eq:mustar)."""
+    """The gain ``K = R^{-1} B' P`` (m, n), so that ``u = -K x = -1/2 R^{-1} B' grad V`` :eq:`eq-mustar`.
+
+    * ``B``: (n, m).
+    * ``R``: (m, m), symmetric positive definite.
+    * ``P``: (n, n), the value's matrix.
+    """
     dims: dict[str, int] = {}
     B_ = _matrix("B", B, ("n", "m"), dims)
     R_ = _symmetric("R", _matrix("R", R, ("m", "m"), dims), definite=True)
@@ -128,7 +129,11 @@ def lqr_gain(B: ArrayLike, R: ArrayLike, P: ArrayLike) -> Array:
 
 
 def are_residual(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, P: ArrayLike) -> Array:
-    """The ARE residual ``A'P + PA + Q - P B R^{-1} B' P`` (n x n); zero iff x'Px solves eq:HJB."""
+    """The ARE residual ``A'P + PA + Q - P B R^{-1} B' P`` (n, n): zero iff ``x'Px`` solves :eq:`eq-hjb`.
+
+    * ``A``, ``B``, ``Q``, ``R``: the problem, as in :func:`care`.
+    * ``P``: (n, n), the candidate.
+    """
     A_, B_, Q_, R_ = _validate(A, B, Q, R)
     P_ = _matrix("P", P, ("n", "n"), {"n": A_.shape[0]})
     return _riccati_rhs(A_, _gain_matrix(B_, R_), Q_, P_)
@@ -136,13 +141,13 @@ def are_residual(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, P: Arra
 
 @dataclass(frozen=True, eq=False)
 class ARESolution:
-    """One real symmetric solution of the ARE, i.e. one quadratic solution x'Px of eq:HJB.
+    """One real symmetric solution of the ARE: one quadratic solution ``x'Px`` of :eq:`eq-hjb`.
 
-    P : (n, n) symmetric solution.
-    eigenvalues : closed-loop eigenvalues of ``A - B R^{-1} B' P`` (``np.sort_complex`` order).
-    stabilizing : all closed-loop eigenvalues have negative real part (then P = :func:`care`).
-    chosen : the Hamiltonian eigenvalues whose invariant subspace gave P (same order; equal
-        to ``eigenvalues`` up to rounding, since ``H [I; P] = [I; P] (A - B R^{-1} B' P)``).
+    * ``P``: (n, n), symmetric.
+    * ``eigenvalues``: the closed-loop eigenvalues of ``A - B R^{-1} B' P``, in ``np.sort_complex`` order.
+    * ``stabilizing``: all closed-loop eigenvalues have negative real part (then P is :func:`care`'s).
+    * ``chosen``: the Hamiltonian eigenvalues whose invariant subspace gave P, in the same order; equal to
+      ``eigenvalues`` up to rounding, since ``H [I; P] = [I; P] (A - B R^{-1} B' P)``.
     """
 
     P: Array
@@ -154,9 +159,14 @@ class ARESolution:
 def are_solutions(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, tol: float = 1e-9) -> list[ARESolution]:
     """All real symmetric ARE solutions, the stabilizing one first.
 
-    Each is a solution ``V(x) = x'Px`` of the steady-state HJB eq:HJB with ``V(0) = 0``, but only
-    the stabilizing one is the optimal value ``V*`` -- the non-uniqueness that makes the paper
-    solve the finite-horizon eq:HJBT instead.
+    Each is a solution ``V(x) = x'Px`` of the steady-state HJB :eq:`eq-hjb` with ``V(0) = 0``, but only the
+    stabilizing one is the optimal value ``V*``: the non-uniqueness that makes the paper solve the
+    finite-horizon :eq:`eq-hjbt` instead.
+
+    * ``A``, ``B``, ``Q``, ``R``: the problem, as in :func:`care`.
+    * ``tol``: the relative tolerance of the enumeration, in (0, 1).
+
+    Returns a list of :class:`ARESolution`.
 
     Method: the Hamiltonian ``H = [[A, -B R^{-1} B'], [-Q, -A']]`` has spectrum symmetric about
     the imaginary axis. Choosing one eigenvalue from every pair ``(lambda, -lambda)``, keeping
@@ -230,7 +240,7 @@ def are_solutions(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, tol: f
 
 
 # --------------------------------------------------------------------------------------------
-# differential Riccati equation (finite-horizon HJB, eq:HJBT)
+# differential Riccati equation (finite-horizon HJB, eq-hjbt)
 # --------------------------------------------------------------------------------------------
 def _eval_dense(dense: OdeSolution, horizon: float, n: int, t: ArrayLike) -> Array:
     """Symmetric P(t) from the flattened dense output, for t in [0, horizon]."""
@@ -245,12 +255,16 @@ def _eval_dense(dense: OdeSolution, horizon: float, n: int, t: ArrayLike) -> Arr
 
 @dataclass(frozen=True, eq=False)
 class RiccatiSolution:
-    """Solution of ``-dP/dt = A'P + PA + Q - P B R^{-1} B' P`` on [0, horizon], ``P(horizon) = P_T``.
+    """The solution of ``-dP/dt = A'P + PA + Q - P B R^{-1} B' P`` on [0, horizon] with ``P(horizon) = P_T``.
 
-    ``V_T(x, t) = x'P(t)x`` is the exact solution of eq:HJBT with ``phi(x) = x'P_T x``.
+    ``V_T(x, t) = x'P(t)x`` is the exact solution of :eq:`eq-hjbt` with ``phi(x) = x'P_T x``. The methods
+    evaluate the dense output at any t.
 
-    t : (k,) ascending times in [0, horizon]; P : (k, n, n) symmetric P(t) at those times.
-    ``at``, ``derivative``, ``value`` and ``policy`` evaluate the dense output at any t.
+    * ``t``: (k,), ascending times in [0, horizon].
+    * ``P``: (k, n, n), the symmetric P(t) at those times.
+    * ``horizon``: T.
+    * ``A``, ``B``, ``Q``, ``R``: the problem.
+    * ``dense``: scipy's dense output of the integration.
     """
 
     t: Array
@@ -279,21 +293,38 @@ class RiccatiSolution:
         return x_, self.at(np.broadcast_to(np.asarray(t, dtype=float), (x_.shape[0],)))
 
     def value(self, x: ArrayLike, t: ArrayLike) -> Array:
-        """``V_T(x, t) = x'P(t)x`` for x (N, n) and scalar or (N,) t; returns (N,)."""
+        """The value ``V_T(x, t) = x'P(t)x``.
+
+        * ``x``: (N, n) states.
+        * ``t``: scalar or (N,) times.
+
+        Returns (N,).
+        """
         x_, P = self._points(x, t)
         return np.einsum("ni,nij,nj->n", x_, P, x_)
 
     def policy(self, x: ArrayLike, t: ArrayLike) -> Array:
-        """``mu_T(x, t) = -R^{-1} B' P(t) x`` (eq:muTstar) for x (N, n); returns (N, m)."""
+        """The policy ``mu_T(x, t) = -R^{-1} B' P(t) x`` :eq:`eq-mut`.
+
+        * ``x``: (N, n) states.
+        * ``t``: scalar or (N,) times.
+
+        Returns (N, m).
+        """
         x_, P = self._points(x, t)
         Px = np.einsum("nij,nj->ni", P, x_)
         return -sla.solve(self.R, self.B.T @ Px.T, assume_a="pos").T
 
     def transition(self, t: float | None = None) -> Array:
-        """Phi(t): the closed loop under the optimal time-varying policy maps x(0) to x(t) = Phi(t) x(0).
+        """The transition matrix Phi(t) of the optimal closed loop: ``x(t) = Phi(t) x(0)``.
 
-        Integrates ``dPhi/dt = (A - B R^{-1} B' P(t)) Phi``, ``Phi(0) = I`` with ``solve_ivp``; default
-        ``t = horizon`` (so ``x_T(T) = Phi x0``, the end point in the bound after Theorem 1)."""
+        Integrates ``dPhi/dt = (A - B R^{-1} B' P(t)) Phi``, ``Phi(0) = I`` with ``solve_ivp``.
+
+        * ``t``: the end time in [0, horizon]; None: the horizon, so that ``x_T(T) = Phi x0``, the end point
+          in :eq:`eq-uniform-bound`.
+
+        Returns Phi, (n, n).
+        """
         t_end = self.horizon if t is None else float(t)
         if not 0.0 <= t_end <= self.horizon:
             raise ValueError(f"t must lie in [0, {self.horizon}], got {t}")
@@ -314,13 +345,21 @@ class RiccatiSolution:
 def convergence_bound(
     A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, P_psi: ArrayLike, horizon: float, x0: ArrayLike
 ) -> dict:
-    """Exact LQ check of the uniform convergence of V_T(., 0) to V* (Theorem 1 and the bound after it).
+    """The exact LQ check of Theorem 1: how far V_T(., 0) is from V*, against the bound :eq:`eq-uniform-bound`.
 
-    For terminal cost ``psi(x) = x' P_psi x`` returns, over the initial states ``x0`` (N, n):
-    ``error`` = max |V_T(x0, 0; psi) - V*(x0)| and
-    ``bound`` = max{ max psi(x*(T)), max V*(x_T(T; 0)) } where x* is the optimal infinite-horizon closed loop
-    and x_T(.; 0) the optimal closed loop of the phi = 0 problem; also ``lower`` = max |V_T(.,0;0) - V*| and
-    ``upper`` = max |V_T(.,0;psi+V*) - V*|, the two ends of the sandwich (eq. (sandwich)).
+    * ``A``, ``B``, ``Q``, ``R``: the problem, as in :func:`care`.
+    * ``P_psi``: (n, n) symmetric PSD; the terminal cost is ``psi(x) = x' P_psi x``.
+    * ``horizon``: T.
+    * ``x0``: (N, n) initial states; every maximum below is over them.
+
+    Returns a dict:
+
+    * ``horizon``: T.
+    * ``error``: ``max abs(V_T(x0, 0; psi) - V*(x0))``.
+    * ``bound``: ``max(max psi(x*(T)), max V*(x_T(T; 0)))``, where x* is the optimal infinite-horizon closed
+      loop and ``x_T(.; 0)`` the optimal closed loop with terminal cost 0.
+    * ``lower``: ``max abs(V_T(., 0; 0) - V*)``, the lower end of the sandwich :eq:`eq-sandwich`.
+    * ``upper``: ``max abs(V_T(., 0; psi + V*) - V*)``, its upper end.
     """
     A_, B_, Q_, R_ = _validate(A, B, Q, R)
     x = np.asarray(x0, dtype=float)
@@ -359,14 +398,21 @@ def riccati_ode(
 ) -> RiccatiSolution:
     """Integrate the finite-horizon Riccati ODE backward from ``P(horizon) = P_T`` to t = 0.
 
-    ``-dP/dt = A'P + PA + Q - P B R^{-1} B' P`` is eq:HJBT for ``V_T(x, t) = x'P(t)x`` with
-    terminal cost ``phi(x) = x'P_T x`` (P_T symmetric PSD, default 0). With ``P_T = 0``, P(0)
-    increases monotonically with the horizon to :func:`care` (Lemma le:inc); with
-    ``P_T = P_psi + care(...)`` it converges to it from above (Lemma le:ucon2), monotonically
-    only in special cases such as ``P_T = c care(...)``, c >= 1.
+    ``-dP/dt = A'P + PA + Q - P B R^{-1} B' P`` is :eq:`eq-hjbt` for ``V_T(x, t) = x'P(t)x`` with terminal
+    cost ``phi(x) = x'P_T x``. With ``P_T = 0``, P(0) increases with the horizon to :func:`care`
+    (:prf:ref:`lem-monotone`); with ``P_T = P_psi + care(...)`` it converges to it from above
+    (:prf:ref:`lem-uniform-above`), monotonically only in special cases such as ``P_T = c care(...)``,
+    c >= 1. Any PSD ``P_T`` lies between the two :eq:`eq-sandwich`. Uses ``scipy.integrate.solve_ivp``
+    with dense output.
 
-    Uses ``scipy.integrate.solve_ivp`` with dense output. ``t_eval`` (sorted ascending, within
-    [0, horizon]) picks the times stored in the result; by default the solver's own steps.
+    * ``A``, ``B``, ``Q``, ``R``: the problem, as in :func:`care`.
+    * ``horizon``: T > 0.
+    * ``P_T``: (n, n) symmetric PSD terminal matrix; None: 0.
+    * ``t_eval``: the times stored in the result, ascending within [0, horizon]; None: the solver's steps.
+    * ``rtol``, ``atol``: the integrator's tolerances.
+    * ``method``: ``"DOP853"`` or ``"Radau"`` (stiff problems).
+
+    Returns a :class:`RiccatiSolution`.
     """
     A_, B_, Q_, R_ = _validate(A, B, Q, R)
     n = A_.shape[0]

@@ -1,18 +1,14 @@
 """Checks of a learned value function (Section 5.1) and of its policy in closed loop.
 
-* :func:`infinite_horizon_residual` — E (eq-e): mean of E_e(x)^2 (eq-ee) over points of Omega plus V(0)^2.
-  By default the points are a grid of ``points_per_dim**n`` points while that stays at most
-  :data:`GRID_MAX_POINTS` (every 1-, 2- and 3-D case of the book); above it (high n) E is a seeded Monte Carlo
-  mean over :data:`MC_SAMPLES` uniform points of Omega, reported with its standard error (``E_stderr``) and
-  sample size (``E_samples``), evaluated in batches so memory stays bounded in any dimension.
-* E_e(x) itself, on a grid for plotting (the paper's Figures 1-3), is
-  :meth:`pinnhjb.residuals.SteadyStateHJB.field`.
-* :func:`optimality_errors` — max and mean-square errors of V and mu against a known V*, mu*.
-* :func:`closed_loop` — simulate ``xdot = f(x) + g(x) mu(x)`` with a batched RK4 and accumulate the cost
-  J(mu; x0) of eq. (2), so a policy is judged by what it does.
+* :func:`infinite_horizon_residual`: the horizon check E :eq:`eq-e`, the mean square of the steady-state
+  residual :eq:`eq-ee` over Omega plus V(0)^2, on a grid while it has at most :data:`GRID_MAX_POINTS` points
+  (every case of the book), else by seeded Monte Carlo with its standard error;
+* :func:`optimality_errors`: errors of V and mu against a known V*, mu*;
+* :func:`closed_loop`: simulate the policy and accumulate the cost :eq:`eq-cost`, so that a policy is judged by
+  what it does.
 
-``value_fn`` arguments are batched torch callables x (N, n) -> V(x) (N,), differentiable in x; points are
-float64 on the CPU (solution objects move them to their own device and precision and back).
+A ``value_fn`` is a batched torch callable x (N, n) -> V(x) (N,), differentiable in x; points are float64 on
+the CPU (the solution objects move them to their own device and precision and back).
 """
 
 from __future__ import annotations
@@ -45,14 +41,17 @@ __all__ = [
     "uses_grid",
 ]
 
-GRID_MAX_POINTS = 2**16  # 65536: 1001 points in 1-D, 101^2, 21^3, 9^4 and 9^5 grids all fit
-MC_SAMPLES = 2**15  # Monte Carlo sample size above the cap (standard error ~ 0.6% of the spread of E_e^2)
+#: The largest grid E is measured on (65536 points: 1001 points in 1-D, 101^2, 21^3, 9^4 and 9^5 grids fit).
+GRID_MAX_POINTS = 2**16
+#: The Monte Carlo sample size above that (standard error about 0.6% of the spread of E_e^2).
+MC_SAMPLES = 2**15
 MC_SEED = 0
 _BATCH = 16384
 
 
 def default_points_per_dim(n: int) -> int:
-    """Grid resolution for E: 101 per axis in 2-D (the 101 x 101 grid of the reports), 21 in 3-D, 9 above."""
+    """The grid resolution for E in dimension ``n``: 1001 in 1-D, 101 per axis in 2-D (the reports' 101 x 101
+    grid), 21 in 3-D, 9 above."""
     return {1: 1001, 2: 101, 3: 21}.get(n, 9)
 
 
@@ -68,12 +67,21 @@ def _points_per_dim(system, points_per_dim) -> int:
 
 
 def uses_grid(system, points_per_dim: int | None = None) -> bool:
-    """Whether E is measured on the grid (``points_per_dim**n <= GRID_MAX_POINTS``) rather than by Monte Carlo."""
+    """Whether E is measured on the grid (``points_per_dim**n <= GRID_MAX_POINTS``) rather than by Monte Carlo.
+
+    * ``system``: the control-affine system.
+    * ``points_per_dim``: grid points per axis; None: :func:`default_points_per_dim`.
+    """
     return _points_per_dim(system, points_per_dim) ** system.n <= GRID_MAX_POINTS
 
 
 def evaluation_grid(system, points_per_dim: int | None = None, dtype=torch.float64, device=None) -> Tensor:
-    """The grid over Omega on which E is reported; refuses one above :data:`GRID_MAX_POINTS` points."""
+    """The grid over Omega on which E is reported; refuses one above :data:`GRID_MAX_POINTS` points.
+
+    * ``system``: the control-affine system.
+    * ``points_per_dim``: grid points per axis; None: :func:`default_points_per_dim`.
+    * ``dtype``, ``device``: of the result.
+    """
     ppd = _points_per_dim(system, points_per_dim)
     if ppd**system.n > GRID_MAX_POINTS:
         raise ValueError(
@@ -102,12 +110,21 @@ def _chunks(x: Tensor, size: int = 16384):
 def infinite_horizon_residual(
     system, value_fn: ValueFn, points: Tensor | None = None, points_per_dim: int | None = None
 ) -> dict:
-    """E = mean_i E_e(x_i)^2 + V(0)^2 (eq-e) on ``points`` (default: a grid over Omega).
+    """The horizon check ``E = mean_i E_e(x_i)^2 + V(0)^2`` :eq:`eq-e`.
 
-    Returns ``{"E", "E_flow", "E_boundary", "E_zero"}`` where ``E_zero`` is E of the trivial V = 0 on the
-    same points (mean Q^2): on small boxes E is only meaningful next to it. When the grid would exceed
-    :data:`GRID_MAX_POINTS` points, the mean is a seeded Monte Carlo estimate over Omega and the result also
-    holds ``E_stderr`` (its standard error) and ``E_samples`` (the sample size).
+    * ``system``: the control-affine system.
+    * ``value_fn``: V, a batched torch callable (N, n) -> (N,).
+    * ``points``: (N, n) states; None: a grid over Omega, or seeded Monte Carlo points of Omega (evaluated in
+      batches) when the grid would exceed :data:`GRID_MAX_POINTS` points.
+    * ``points_per_dim``: the grid's points per axis; None: :func:`default_points_per_dim`.
+
+    Returns a dict:
+
+    * ``E``: the sum of the two parts below.
+    * ``E_flow``: the mean of E_e^2; ``E_boundary``: V(0)^2.
+    * ``E_zero``: E of the trivial V = 0 on the same points (the mean of Q^2); on small boxes E is only
+      meaningful next to it.
+    * ``E_stderr``, ``E_samples``: Monte Carlo only, the standard error and the sample size.
     """
     if points is None and not uses_grid(system, points_per_dim):
         return _monte_carlo_residual(system, value_fn)
@@ -147,7 +164,13 @@ def _monte_carlo_residual(system, value_fn: ValueFn, samples: int = MC_SAMPLES) 
 
 
 def policy_of(system, value_fn: ValueFn) -> Callable[[Tensor], Tensor]:
-    """mu(x) = -1/2 R^{-1} g(x)' grad V(x) (eq. (3)), as a batched callable (N, m)."""
+    """The policy of a value function, ``mu(x) = -1/2 R^{-1} g(x)' grad V(x)`` :eq:`eq-mustar`.
+
+    * ``system``: the control-affine system.
+    * ``value_fn``: V, a batched torch callable (N, n) -> (N,).
+
+    Returns a batched callable x (N, n) -> (N, m).
+    """
 
     def mu(x: Tensor) -> Tensor:
         _, g = gradient(value_fn, x)
@@ -159,10 +182,17 @@ def policy_of(system, value_fn: ValueFn) -> Callable[[Tensor], Tensor]:
 def optimality_errors(
     system, value_fn: ValueFn, points: Tensor | None = None, points_per_dim: int | None = None
 ) -> dict:
-    """Errors of V(.) and mu(.) against the system's known V*, mu* on ``points`` (default: grid over Omega).
+    """The errors of V and its policy mu against the system's known V* and mu*.
 
-    Returns max |V - V*|, RMS and MSE of V - V*, and the same for mu (max over points and inputs).
-    Raises ValueError when the system has no known V*.
+    Raises a ValueError when the system has no known V*.
+
+    * ``system``: the control-affine system, with ``value_star`` and ``policy_star``.
+    * ``value_fn``: V, a batched torch callable (N, n) -> (N,).
+    * ``points``: (N, n) states; None: as in :func:`infinite_horizon_residual`.
+    * ``points_per_dim``: the grid's points per axis; None: :func:`default_points_per_dim`.
+
+    Returns a dict: ``value_max_error`` (the largest ``abs(V - V*)``), ``value_rmse``, ``value_mse``, and the
+    same three for mu (``policy_...``, the largest over points and inputs).
     """
     if system.value_star is None or system.policy_star is None:
         raise ValueError(f"system '{system.name}' has no known V*/mu*; errors need a reference (see pinnhjb.reference)")
@@ -190,8 +220,11 @@ def optimality_errors(
 class ClosedLoopResult:
     """Trajectories of the closed loop from a batch of initial states.
 
-    ``t`` (K+1,), ``x`` (K+1, N, n), ``u`` (K+1, N, m), ``cost`` J accumulated to t_final (N,),
-    ``stabilized`` (N,) bool: |x(t_final)| below ``tol``.
+    * ``t``: (K+1,) times.
+    * ``x``: (K+1, N, n) states.
+    * ``u``: (K+1, N, m) inputs.
+    * ``cost``: (N,), the cost J accumulated to ``t_final``.
+    * ``stabilized``: (N,) bool, ``norm(x(t_final))`` below ``tol``.
     """
 
     t: np.ndarray
@@ -202,6 +235,7 @@ class ClosedLoopResult:
 
     @property
     def fraction_stabilized(self) -> float:
+        """The fraction of the initial states whose trajectory was stabilized."""
         return float(np.mean(self.stabilized))
 
 
@@ -214,13 +248,20 @@ def closed_loop(
     tol: float = 1e-3,
     time_varying: bool = False,
 ) -> ClosedLoopResult:
-    """Integrate xdot = f(x) + g(x) policy(x) and dJ/dt = Q(x) + u'Ru with classical RK4 (batched in torch).
+    """Simulate ``xdot = f(x) + g(x) policy(x)`` and ``dJ/dt = Q(x) + u'Ru`` with classical RK4, batched.
 
-    ``time_varying=True`` calls ``policy(x, t)`` instead (e.g. a finite-horizon mu_T(x, t) along its horizon).
+    The running cost is integrated with the state, so ``cost`` approximates J(policy; x0) of :eq:`eq-cost`
+    truncated at ``t_final``: choose it long enough for the tail to vanish (``stabilized`` tells whether it did).
 
-    ``x0``: (N, n) tensor or array of initial states. The running cost is integrated with the state, so
-    ``cost`` approximates J(policy; x0) of eq. (2) truncated at ``t_final`` (choose it long enough for the
-    tail to vanish; ``stabilized`` tells whether it did).
+    * ``system``: the control-affine system.
+    * ``policy``: a batched callable x (N, n) -> u (N, m).
+    * ``x0``: (N, n) initial states, a tensor or an array.
+    * ``t_final``: the simulated time.
+    * ``dt``: the RK4 step.
+    * ``tol``: a trajectory counts as stabilized when ``norm(x(t_final)) < tol``.
+    * ``time_varying``: call ``policy(x, t)`` instead, e.g. a finite-horizon mu_T(x, t) along its horizon.
+
+    Returns a :class:`ClosedLoopResult`.
     """
     x = system.check_states(torch.as_tensor(x0), "x0").to(torch.float64)
     if not (t_final > 0 and dt > 0):
@@ -258,10 +299,16 @@ def closed_loop(
 
 
 def quadratic_fields(A, B, Q, R, P, x) -> dict:
-    """Exact LQ counterparts of a learned solution's fields for V(x) = x'Px on ``x`` (N, n), numpy in and out:
-    ``value`` x'Px, ``policy`` -R^{-1} B'P x (N, m) (:func:`pinnhjb.lq.lqr_gain`) and ``residual``
-    E_e(x; V) = x' (A'P + PA + Q - P B R^{-1} B'P) x (eq-ee, the ARE residual
-    :func:`pinnhjb.lq.are_residual` as a quadratic form; zero for every solution of the ARE)."""
+    """The exact LQ counterparts of a learned solution's fields, for ``V(x) = x'Px``; numpy in and out.
+
+    * ``A``, ``B``, ``Q``, ``R``: the linear-quadratic problem.
+    * ``P``: (n, n), the value's matrix.
+    * ``x``: (N, n) states.
+
+    Returns a dict: ``value`` ``x'Px`` (N,); ``policy`` ``-R^{-1} B'P x`` (N, m) (:func:`pinnhjb.lq.lqr_gain`);
+    ``residual`` ``E_e(x; V) = x' (A'P + PA + Q - P B R^{-1} B'P) x`` (N,) :eq:`eq-ee`, the ARE residual
+    (:func:`pinnhjb.lq.are_residual`) as a quadratic form, zero for every solution of the ARE.
+    """
     x = np.asarray(x, dtype=float)
 
     def quad(M):

@@ -1,16 +1,10 @@
-"""Value networks (Section 3) and the autograd helpers the residuals use.
+"""Value networks (Section 3), their terminal costs, and the autograd helpers the residuals use.
 
-* :class:`FiniteHorizonValue` is ``v_T(x, t)`` on ``Omega x [0, T]`` for the finite-horizon HJB (eq. (5)). With
-  ``ansatz=True`` (our default) it is written as
-  ``v(x, t) = phi(x) + (T - t)/T * (N(x, t) - N(0, t))`` so that the terminal condition ``v(x, T) = phi(x)``
-  (residual F_b) and the origin condition ``v(0, t) = 0`` (residual F_in, when phi(0) = 0) hold exactly;
-  with ``ansatz=False`` it is the plain network ``N(x, t)`` of the paper and both conditions enter the loss.
-* :class:`SteadyStateValue` is ``V(x)`` for the direct steady-state PINN (the paper's T = infinity column).
-* Terminal costs phi are small modules: :class:`ZeroTerminalCost`, :class:`QuadraticTerminalCost`,
-  :class:`ValueTerminalCost` (a frozen previous stage at t = 0, the terminal cost of the horizon
-  extension, eq. (HJBinc)) and :class:`CallableTerminalCost` for a user's function.
-* :func:`gradient` and :func:`value_and_gradients` differentiate a value by autograd; no finite differences
-  anywhere. The residuals themselves (F_e, F_b, F_in, E_e) are the objects of :mod:`pinnhjb.residuals`.
+:class:`FiniteHorizonValue` is ``v_T(x, t)`` for the finite-horizon HJB :eq:`eq-hjbt`. With ``ansatz=True`` (the
+default) it is ``v(x, t) = phi(x) + (T - t)/T * (N(x, t) - N(0, t))``, so that the terminal condition
+:eq:`eq-fb` and the origin condition :eq:`eq-fin` (when phi(0) = 0) hold exactly; with ``ansatz=False`` it is
+the paper's plain network ``N(x, t)`` and both conditions enter the loss. :class:`SteadyStateValue` is ``V(x)``
+for the direct steady-state PINN. Derivatives come from autograd, never from finite differences.
 """
 
 from __future__ import annotations
@@ -23,6 +17,8 @@ from torch import nn
 
 Tensor = torch.Tensor
 
+#: The activations a network may use, by name: ``"tanh"`` (the paper's), ``"sigmoid"``, ``"softplus"``, ``"silu"``,
+#: ``"gelu"``.
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
     "sigmoid": nn.Sigmoid,
@@ -45,7 +41,13 @@ __all__ = [
 
 
 class MLP(nn.Module):
-    """Fully connected network R^d -> R with ``depth`` hidden layers of ``width`` units (paper: 3 x 100 tanh)."""
+    """A fully connected network R^d -> R (the paper's: 3 hidden layers of 100 tanh units).
+
+    * ``in_dim``: d.
+    * ``width``: units per hidden layer.
+    * ``depth``: hidden layers.
+    * ``activation``: a key of :data:`ACTIVATIONS`.
+    """
 
     def __init__(self, in_dim: int, width: int = 100, depth: int = 3, activation: str = "tanh"):
         super().__init__()
@@ -86,7 +88,7 @@ class _Scaled(nn.Module):
 
 
 class ZeroTerminalCost(nn.Module):
-    """phi = 0 (the paper's choice in all its simulations)."""
+    """The terminal cost phi = 0 (the paper's choice in all its simulations)."""
 
     def forward(self, x: Tensor) -> Tensor:
         return torch.zeros(x.shape[0], dtype=x.dtype, device=x.device)
@@ -96,7 +98,10 @@ class ZeroTerminalCost(nn.Module):
 
 
 class QuadraticTerminalCost(nn.Module):
-    """phi(x) = x' P x (e.g. psi + V* in the LQ illustrations of Lemma 4)."""
+    """The terminal cost ``phi(x) = x'Px``, e.g. psi + V* in the LQ illustrations of :prf:ref:`lem-uniform-above`.
+
+    * ``P``: (n, n).
+    """
 
     def __init__(self, P):
         super().__init__()
@@ -110,11 +115,14 @@ class QuadraticTerminalCost(nn.Module):
 
 
 class CallableTerminalCost(nn.Module):
-    """phi given by a user's batched torch callable x (N,n) -> (N,).
+    """A terminal cost phi given by a user's function.
 
-    Code is not stored in a checkpoint: without ``name`` such a solution cannot be saved; with a ``name`` it
-    is saved under that name, and :func:`pinnhjb.load` then asks for the same function back
+    Code is not stored in a checkpoint: without ``name`` such a solution cannot be saved; with a ``name`` it is
+    saved under that name, and :func:`pinnhjb.storage.load` then asks for the same function back
     (``terminal_cost=``) instead of silently using another phi.
+
+    * ``fn``: a batched torch callable x (N, n) -> (N,).
+    * ``name``: the name it is saved under; None: not savable.
     """
 
     def __init__(self, fn: Callable[[Tensor], Tensor], name: str | None = None):
@@ -130,12 +138,14 @@ class CallableTerminalCost(nn.Module):
 
 
 class ValueTerminalCost(nn.Module):
-    """phi(x) = V_T(x, 0) of a previous, frozen stage: the terminal cost of the horizon extension (eq. (HJBinc)).
+    """The terminal cost ``phi(x) = V_T(x, 0)`` of a previous, frozen stage: the horizon extension's :eq:`eq-hjbinc`.
 
-    The previous stage is held by reference, not registered as a submodule: a chain of K stages is then K flat
+    The previous stage is held by reference, not registered as a submodule: a chain of K stages is K flat
     modules, not K nested ones, so moving, freezing or printing a stage never recurses through the whole chain
-    (and a chain of any length stays below Python's recursion limit). Its value is evaluated by
-    :meth:`FiniteHorizonValue.forward`, which walks the chain iteratively.
+    (and a chain of any length stays below Python's recursion limit). :meth:`FiniteHorizonValue.forward`
+    walks the chain iteratively.
+
+    * ``previous``: the previous stage's :class:`FiniteHorizonValue`; its weights are frozen.
     """
 
     def __init__(self, previous: FiniteHorizonValue):
@@ -159,7 +169,15 @@ class ValueTerminalCost(nn.Module):
 
 
 class FiniteHorizonValue(_Scaled):
-    """v_T(x, t) on Omega x [0, T] (Algorithm 1). See the module docstring for the ansatz."""
+    """The value network ``v_T(x, t)`` on Omega x [0, T] of Algorithm 1 (the ansatz: see the module's description).
+
+    * ``n``: the state dimension.
+    * ``horizon``: T > 0, the stage's own length.
+    * ``train_domain``: the training box (n, 2); states are scaled from it to [-1, 1].
+    * ``terminal_cost``: phi, a module such as :class:`ZeroTerminalCost`; None: phi = 0.
+    * ``width``, ``depth``, ``activation``: the :class:`MLP`.
+    * ``ansatz``: build the terminal and origin conditions into the network.
+    """
 
     def __init__(
         self,
@@ -197,7 +215,7 @@ class FiniteHorizonValue(_Scaled):
         return self.net(self.net_inputs(x, t))
 
     def correction(self, x: Tensor, t: Tensor) -> Tensor:
-        """v - phi under the ansatz, (T - t)/T (N(x,t) - N(0,t)); the bare N(x, t) otherwise."""
+        """``v - phi`` under the ansatz, ``(T - t)/T (N(x, t) - N(0, t))``; the bare N(x, t) otherwise."""
         if not self.ansatz:
             return self.raw(x, t)
         s = (self.horizon - t) / self.horizon
@@ -216,13 +234,14 @@ class FiniteHorizonValue(_Scaled):
         return models
 
     def forward(self, x: Tensor, t: Tensor | float) -> Tensor:
+        """The value v(x, t) for states x (N, n) and a time t (scalar or (N,)); returns (N,)."""
         t = _broadcast_time(t, x)
         if not self.ansatz:
             return self.correction(x, t)
         # v_K(x, t) = c_K(x, t) + (c_{K-1}(x, 0) + (... + (c_1(x, 0) + phi_1(x)))): the corrections newest first,
-        # then phi_1, then the sums innermost first, as the nested calls did (the same operations created in the
-        # same order, so values and autograd's gradients are bit-identical), but in a loop: one network pass per
-        # stage and no recursion, whatever the chain's length.
+        # then phi_1, then the sums innermost first, the order of the nested expression (so values and autograd's
+        # gradients are bit-identical to it), in a loop: one network pass per stage and no recursion, whatever
+        # the chain's length.
         models = self.chain()
         zero = None
         corrections = []
@@ -244,10 +263,14 @@ class FiniteHorizonValue(_Scaled):
     ) -> tuple[Tensor, Tensor]:
         """grad_x and d/dt of :meth:`correction` per point, kept differentiable in the weights (for training).
 
-        With ``origin_times`` (K,) and ``origin_index`` (N,) such that ``t = origin_times[origin_index]``, the
-        origin term N(0, t) of the ansatz is evaluated at the K distinct times only and gathered, instead of
-        a second full forward pass over all N points: the same function and derivatives, about half the cost
-        of a training step when K << N. Without them every point's N(0, t_i) is evaluated.
+        * ``x``: (N, n) states.
+        * ``t``: (N,) times.
+        * ``origin_times``: (K,) distinct times, with ``t = origin_times[origin_index]``: the origin term N(0, t)
+          of the ansatz is then evaluated at the K times only and gathered, the same function and derivatives
+          at about half the cost of a training step when K << N. None: N(0, t_i) at every point.
+        * ``origin_index``: (N,), see ``origin_times``.
+
+        Returns grad_x (N, n) and d/dt (N,).
         """
         x = x.detach().requires_grad_(True)
         t = t.detach().requires_grad_(True)
@@ -273,7 +296,13 @@ class FiniteHorizonValue(_Scaled):
 
 
 class SteadyStateValue(_Scaled):
-    """V(x) for the direct steady-state PINN on eq. (4): N(x) - N(0) (ansatz) or N(x) (soft, as the paper)."""
+    """The value network V(x) of the direct steady-state PINN on :eq:`eq-hjb`.
+
+    * ``n``: the state dimension.
+    * ``train_domain``: the training box (n, 2).
+    * ``width``, ``depth``, ``activation``: the :class:`MLP`.
+    * ``ansatz``: ``N(x) - N(0)``, so that V(0) = 0 exactly; False: ``N(x)``, as the paper.
+    """
 
     def __init__(
         self, n: int, train_domain, width: int = 100, depth: int = 3, activation: str = "tanh", ansatz: bool = True
@@ -284,6 +313,7 @@ class SteadyStateValue(_Scaled):
         self.net = MLP(n, width, depth, activation)
 
     def forward(self, x: Tensor, t: Tensor | float | None = None) -> Tensor:
+        """The value V(x) for states x (N, n); ``t`` is ignored. Returns (N,)."""
         out = self.net(self.scale_x(x))
         if self.ansatz:
             out = out - self.net(self.scale_x(torch.zeros_like(x[:1])))
@@ -301,7 +331,12 @@ def _broadcast_time(t, x: Tensor) -> Tensor:
 
 
 def gradient(fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = False) -> tuple[Tensor, Tensor]:
-    """Values fn(x) (N,) and their gradient in x (N, n) by autograd."""
+    """The values fn(x) (N,) and their gradient in x (N, n), by autograd.
+
+    * ``fn``: a batched callable (N, n) -> (N,).
+    * ``x``: (N, n) states.
+    * ``create_graph``: keep the graph, to differentiate the gradient again.
+    """
     with torch.enable_grad():
         x = x.detach().requires_grad_(True)
         v = fn(x)
@@ -312,7 +347,13 @@ def gradient(fn: Callable[[Tensor], Tensor], x: Tensor, create_graph: bool = Fal
 
 
 def value_and_gradients(model: FiniteHorizonValue, x: Tensor, t: Tensor | float, create_graph: bool = False):
-    """v(x, t), grad_x v and dv/dt by autograd (one backward pass)."""
+    """v(x, t), grad_x v and dv/dt, by autograd in one backward pass.
+
+    * ``model``: the value network.
+    * ``x``: (N, n) states.
+    * ``t``: scalar or (N,) times.
+    * ``create_graph``: keep the graph, to differentiate again.
+    """
     with torch.enable_grad():
         x = x.detach().requires_grad_(True)
         t = _broadcast_time(t, x).detach().requires_grad_(True)

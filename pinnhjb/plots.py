@@ -1,10 +1,8 @@
 """Figures in one style: the paper's surfaces (Figures 1-7), loss curves, time-to-accuracy lines and bars.
 
-Every function takes plain data or a solution object and returns a matplotlib ``Figure``; nothing is shown
-or saved here. Figures are drawn for the book's content column: at most :data:`WIDTH` inches wide at 100 dpi
-(one inch = 100 CSS pixels as displayed), at most two 3-D panels a row, fonts of 10 pt and more. Call
-:func:`use_book_style` once per notebook: it sets those fonts and makes the inline backend emit PNGs at twice
-the resolution (sharp on high-density screens, displayed at their size in inches x 100 px).
+Every function takes plain data or a solution object and returns a matplotlib ``Figure``; nothing is shown or
+saved here. Figures are drawn for the book's content column: at most :data:`WIDTH` inches wide at 100 dpi, at
+most two 3-D panels a row, fonts of 10 pt and more. Call :func:`use_book_style` once per notebook.
 """
 
 from __future__ import annotations
@@ -33,7 +31,8 @@ __all__ = [
 
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
-WIDTH = 7.0  # inches: the widest figure the content column shows at full size (700 CSS px)
+#: Inches: the widest figure the content column shows at full size (700 CSS px; one inch = 100 CSS px).
+WIDTH = 7.0
 STYLE = {
     "figure.dpi": 100,
     "font.size": 11,
@@ -48,7 +47,10 @@ STYLE = {
 
 
 def use_book_style(retina: bool = True) -> None:
-    """Set the book's fonts (:data:`STYLE`) and, in a notebook, PNG output at 2x resolution."""
+    """Set the book's fonts (``STYLE``) and, in a notebook, PNG output at twice the resolution.
+
+    * ``retina``: emit 2x PNGs, sharp on high-density screens and displayed at their size in inches x 100 px.
+    """
     mpl.rcParams.update(STYLE)
     if retina:
         try:
@@ -59,7 +61,7 @@ def use_book_style(retina: bool = True) -> None:
 
 
 def panels(k: int, ncols: int = 2, height: float = 3.0, **subplot_kw):
-    """A figure of ``k`` 2-D panels, ``ncols`` a row, as wide as the column: (fig, list of k axes).
+    """A figure of ``k`` 2-D panels, ``ncols`` a row, as wide as the column; returns (fig, list of k axes).
 
     * ``k``: the number of panels; unused cells of the last row are removed.
     * ``ncols``: panels per row (at most 3 keeps tick labels readable).
@@ -77,15 +79,24 @@ def panels(k: int, ncols: int = 2, height: float = 3.0, **subplot_kw):
 
 
 def grid_2d(system, points_per_dim: int = 41):
-    """Mesh over Omega of a 2-D system: (X1, X2, points (N, 2))."""
+    """A mesh over Omega of a 2-D system; returns (X1, X2, points (N, 2)).
+
+    * ``system``: a system with n = 2.
+    * ``points_per_dim``: points along each axis.
+    """
     if system.n != 2:
         raise ValueError(f"surface plots need a 2-D state; system '{system.name}' has n={system.n}")
     return slice_mesh(system, (0, 1), None, points_per_dim)
 
 
 def slice_mesh(system, axes: tuple[int, int] = (0, 1), fixed=None, points_per_dim: int = 31):
-    """Mesh over a plane through Omega: coordinates ``axes`` span Omega, every other one is held at ``fixed``
-    (a scalar for all of them or an (n,) array; default 0). Returns (X1, X2, points (N, n))."""
+    """A mesh over a plane through Omega; returns (X1, X2, points (N, n)).
+
+    * ``system``: the control-affine system.
+    * ``axes``: the two coordinates that span Omega.
+    * ``fixed``: where every other coordinate is held: a scalar for all of them or an (n,) array; None: 0.
+    * ``points_per_dim``: points along each axis.
+    """
     i, j = axes
     if not (0 <= i < system.n and 0 <= j < system.n and i != j):
         raise ValueError(f"axes must be two different coordinates of the {system.n}-D state; got {axes}")
@@ -110,6 +121,9 @@ def surface(
 ):
     """One 3-D surface of ``z`` on the mesh (x1, x2) in the 3-D axes ``ax``, in the book's style.
 
+    * ``ax``: matplotlib 3-D axes.
+    * ``x1``, ``x2``: the mesh, as from :func:`slice_mesh`.
+    * ``z``: the field, any shape with ``x1.size`` entries.
     * ``diverging``: True for an error (white at zero, a symmetric colour scale).
     * ``limit``: None or (lo, hi) for the vertical axis and the colour scale (fixed across compared frames).
     * ``axis_labels``, ``zlabel``: the axes' labels; ``title``: the panel's title.
@@ -149,6 +163,7 @@ def surfaces(
 ):
     """3-D surfaces of fields on the mesh (x1, x2), as in the paper's figures, ``ncols`` a row.
 
+    * ``x1``, ``x2``: the mesh, as from :func:`slice_mesh`.
     * ``fields``, ``titles``: one array (any shape with x1.size entries) and one title per panel.
     * ``diverging``: per panel, True for an error (white at zero, a symmetric colour scale).
     * ``limits``: per panel, None or (lo, hi) for the vertical axis and the colour scale; fix them when frames
@@ -195,10 +210,15 @@ def value_policy_residual(
     fixed=None,
     limits: list | None = None,
 ):
-    """V(., 0), mu(., 0) and the squared flow residual E_e^2 (eq. (flow_res)): the paper's Figures 1-3.
+    """V(., 0), mu(., 0) and the squared steady-state residual E_e^2 :eq:`eq-ee`: the paper's Figures 1-3.
 
-    Over Omega for a 2-D system; for n > 2 on the plane through Omega spanned by ``axes`` with the other
-    coordinates held at ``fixed`` (see :func:`slice_mesh`), e.g. x3 = 0 of a 3-D system."""
+    * ``sol``: a solution.
+    * ``points_per_dim``: mesh points along each axis.
+    * ``suptitle``: the figure's title.
+    * ``axes``, ``fixed``: for n > 2, the plane through Omega spanned by ``axes``, the other coordinates held at
+      ``fixed`` (see :func:`slice_mesh`), e.g. x3 = 0 of a 3-D system.
+    * ``limits``: per panel, None or (lo, hi), as in :func:`surfaces`.
+    """
     x1, x2, pts = slice_mesh(sol.system, axes, fixed, points_per_dim)
     T = _t_label(sol)
     v, u, e = sol.value(pts), sol.policy(pts)[:, 0], sol.residual_field(pts) ** 2
@@ -236,7 +256,14 @@ def _mesh(sol, reference, points_per_dim):
 
 
 def value_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: str = ""):
-    """The learned V(., 0) and its error from optimality V - V* (the paper's Figures 4 and 6)."""
+    """The learned V(., 0) and its error ``V - V*`` (the paper's Figures 4 and 6), for a 2-D system.
+
+    * ``sol``: a solution.
+    * ``reference``: a :class:`~pinnhjb.reference.ReferenceGrid` that gives V* on its own points; None: the
+      system's known V*.
+    * ``points_per_dim``: mesh points along each axis, without a reference.
+    * ``suptitle``: the figure's title.
+    """
     x1, x2, pts = _mesh(sol, reference, points_per_dim)
     T = _t_label(sol)
     v = sol.value(pts)
@@ -251,7 +278,8 @@ def value_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: str
 
 
 def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: str = ""):
-    """The learned mu(., 0) and its error from optimality mu - mu* (the paper's Figures 5 and 7)."""
+    """The learned mu(., 0) and its error ``mu - mu*`` (the paper's Figures 5 and 7); arguments as in
+    :func:`value_and_error`."""
     x1, x2, pts = _mesh(sol, reference, points_per_dim)
     T = _t_label(sol)
     u = sol.policy(pts)[:, 0]
@@ -266,7 +294,11 @@ def policy_and_error(sol, reference=None, points_per_dim: int = 41, suptitle: st
 
 
 def loss_curve(history, title: str = ""):
-    """Training loss against step (Adam, then L-BFGS, then Levenberg-Marquardt) on a log scale."""
+    """The training loss against the step (Adam, then L-BFGS, then Levenberg-Marquardt), on a log scale.
+
+    * ``history``: a :class:`~pinnhjb.training.TrainHistory`.
+    * ``title``: the figure's title.
+    """
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
     steps, losses, phases = np.array(history.step), np.array(history.loss), np.array(history.phase)
     labels = {"adam": "Adam", "lbfgs": "L-BFGS", "lm": "Levenberg-Marquardt"}
@@ -285,10 +317,12 @@ def loss_curve(history, title: str = ""):
 
 
 def time_to_accuracy(traces: dict, targets: dict | None = None, title: str = ""):
-    """E (eq. (IHJB_res)) against training wall seconds, one line per run, checks marked.
+    """The horizon check E :eq:`eq-e` against training wall seconds, one line per run, checks marked.
 
-    ``traces``: label -> (seconds, E), e.g. from ``benchmarks/results/speed.json``; ``targets``: label -> an E
-    drawn as a dashed horizontal line."""
+    * ``traces``: label -> (seconds, E), e.g. from ``benchmarks/results/speed.json``.
+    * ``targets``: label -> an E drawn as a dashed horizontal line.
+    * ``title``: the figure's title.
+    """
     fig, ax = plt.subplots(figsize=(WIDTH, 4.6))
     for label, (seconds, E) in traces.items():
         seconds, E = np.asarray(seconds, dtype=float), np.asarray(E, dtype=float)
@@ -309,8 +343,14 @@ def time_to_accuracy(traces: dict, targets: dict | None = None, title: str = "")
 
 
 def grouped_bars(values: dict, ylabel: str, title: str = "", log: bool = True):
-    """Bars of ``values``: group label -> {bar label -> value or None}, one colour per bar label (e.g. methods by
-    machine). None draws no bar and writes "none" at the axis (not run, or never reached)."""
+    """Grouped bars, one colour per bar label (e.g. methods by machine).
+
+    * ``values``: group label -> {bar label -> value or None}; None draws no bar and writes "none" at the axis
+      (not run, or never reached).
+    * ``ylabel``: the vertical axis's label.
+    * ``title``: the figure's title.
+    * ``log``: a log scale.
+    """
     if not values:
         raise ValueError("nothing to plot: values is empty")
     bars = list(dict.fromkeys(k for group in values.values() for k in group))

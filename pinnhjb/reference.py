@@ -1,30 +1,22 @@
-"""Independent reference values by open-loop optimal control (Pontryagin two-point BVPs).
+"""Independent reference values by open-loop optimal control: Pontryagin two-point boundary-value problems.
 
-For one initial state ``x0`` the optimal value of the finite-horizon cost (eq:costT)
+For one initial state ``x0``, the optimal value of the finite-horizon cost :eq:`eq-costt` follows from the
+minimum principle. The minimizing control is ``u = -1/2 R^{-1} g(x)' lam``, the open-loop form of
+:eq:`eq-mustar` and :eq:`eq-mut`. With ``Hmin(x, lam) = lam'f + Q - 1/4 lam' g R^{-1} g' lam`` the extremal
+solves the Hamiltonian system::
 
-    J_T(u; x0) = int_0^T ( Q(x) + u'Ru ) dt + phi(x(T)),   xdot = f(x) + g(x) u   (eq. (1))
+    xdot = dHmin/dlam,   lamdot = -dHmin/dx,   x(0) = x0,   lam(T) = grad phi(x(T)).
 
-is found from the minimum principle. With the Hamiltonian ``H = lam'(f + g u) + Q + u'Ru`` the
-minimizing control is ``u = -1/2 R^{-1} g(x)' lam`` (the open-loop form of eq. (3), eq:mustar, and of
-eq:muTstar), and the extremal solves
+The running cost is carried as an extra state ``c`` (``cdot = Q + u'Ru``, ``c(0) = 0``), so
+``V_T(x0, 0) = c(T) + phi(x(T))``, ``grad_x V_T(x0, 0) = lam(0)`` and ``mu_T(x0, 0) = -1/2 R^{-1} g(x0)' lam(0)``.
+``scipy.integrate.solve_bvp`` solves it with exact Jacobians: torch autograd on the system's own callables,
+never finite differences.
 
-    xdot = f + g u,   lamdot = -dH/dx (u held at its minimizer),   x(0) = x0,  lam(T) = grad phi(x(T)).
+The infinite horizon :eq:`eq-cost` is truncated at ``t_inf`` with the terminal cost ``x'Px``, P the ARE
+solution of the linearisation at the origin. Near the origin this is the optimal cost-to-go up to terms of
+order ``norm(x)^3``, so the truncation error is of order ``norm(x(t_inf))^3``, which is checked (``tail_tol``).
 
-Writing ``Hmin(x, lam) = lam'f + Q - 1/4 lam' g R^{-1} g' lam`` this is the Hamiltonian system
-``xdot = dHmin/dlam``, ``lamdot = -dHmin/dx``; the running cost is carried as an extra state ``c``
-(``cdot = Q + u'Ru``, ``c(0) = 0``), so ``V_T(x0, 0) = c(T) + phi(x(T))``, ``grad_x V_T(x0, 0) =
-lam(0)`` and ``mu_T(x0, 0) = -1/2 R^{-1} g(x0)' lam(0)``. The BVP is solved by
-``scipy.integrate.solve_bvp`` (4th-order collocation) with exact Jacobians: derivatives of ``f``,
-``g``, ``Q`` (and ``phi``) come from torch autograd on the system's own batched callables, never from
-finite differences.
-
-Infinite horizon (eq. (2), eq:cost): the problem is truncated at ``t_inf`` with the terminal cost
-``phi(x) = x'P x`` where P is the CARE solution of the linearization at the origin (``A = df/dx(0)``,
-``B = g(0)``, ``Q_lin = Hessian(Q)(0)/2``, R). Near the origin this *is* the optimal cost-to-go up to
-O(|x|^3), so the truncation error is O(|x(t_inf)|^3); ``|x(t_inf)|`` is checked (``tail_tol``).
-
-Nothing here depends on the PINN code (:mod:`pinnhjb.pinn`, ``training``, ``solver``, ``metrics``):
-only numpy/scipy and the system's callables ``f, g, Q, R``.
+Nothing here depends on the PINN code: only numpy/scipy and the system's callables f, g, Q, R.
 """
 
 from __future__ import annotations
@@ -348,31 +340,38 @@ def solve_point(
     max_extensions: int = 3,
     _problem: _Problem | None = None,
 ) -> dict:
-    """Optimal value, gradient and policy at one initial state by the minimum principle.
+    """The optimal value, gradient and policy at one initial state, by the minimum principle.
 
-    Parameters
-    ----------
-    system : a :class:`~pinnhjb.systems.ControlAffineSystem` (only ``f, g, Q, R, n, m`` are used).
-    x0 : initial state, shape (n,).
-    horizon : ``math.inf`` for V*(x0) of the infinite-horizon cost eq. (2) (eq:cost), or T > 0 for
-        V_T(x0, 0) of the finite-horizon cost eq:costT.
-    terminal_cost : phi for a finite horizon: ``None`` (phi = 0), a batched torch callable
-        (N, n) -> (N,), or an (n, n) matrix P_T meaning ``phi(x) = x'P_T x``.
-    t_inf : truncation time of the infinite horizon (terminal cost x'P_lqr x, see the module doc).
-    tol : ``solve_bvp`` tolerance on the collocation and boundary residuals.
-    guess : a previous result of this function (warm start, shifted to ``x0``); on failure the LQR
-        guess and then continuation along the ray ``s x0``, s = 1/4 .. 1, are tried.
-    tail_tol : infinite horizon only: the solve is flagged unless ``|x(t_inf)| <= tail_tol``.
-    max_extensions : infinite horizon only: while the tail check fails, ``t_inf`` is doubled up to
-        this many times (slow systems, e.g. :func:`~pinnhjb.systems.third_order`, need t_inf ~ 100).
+    A result that did not converge is returned, flagged, with a RuntimeWarning.
 
-    Returns a dict: ``value`` (V), ``gradient`` (lam(0) = grad_x V), ``policy`` (eq. (3)
-    eq:mustar / eq:muTstar at t = 0: ``-1/2 R^{-1} g(x0)' lam(0)``), ``converged`` (bool: BVP
-    status 0, residuals within tol, tail small), ``status``, ``message``, ``residual`` (max
-    collocation rms residual), ``bc_residual``, ``tail_norm``, ``hamiltonian`` (Hmin at t = 0; ~0
-    for the infinite horizon), ``nodes``, ``x0``, ``t_inf`` (the truncation used; None for a finite
-    horizon) and ``solution`` (the ``solve_bvp`` result, rows x, lam, accumulated cost). A
-    non-converged result is returned, flagged, with a RuntimeWarning.
+    * ``system``: a :class:`~pinnhjb.systems.ControlAffineSystem`; only f, g, Q, R, n and m are used.
+    * ``x0``: the initial state, shape (n,).
+    * ``horizon``: ``math.inf`` for V*(x0) of the infinite-horizon cost :eq:`eq-cost`, or T > 0 for
+      V_T(x0, 0) of the finite-horizon cost :eq:`eq-costt`.
+    * ``terminal_cost``: phi, for a finite horizon: None (phi = 0), a batched torch callable (N, n) -> (N,),
+      or an (n, n) matrix P_T meaning ``phi(x) = x'P_T x``.
+    * ``t_inf``: where the infinite horizon is truncated (see the module's description).
+    * ``tol``: the ``solve_bvp`` tolerance on the collocation and boundary residuals.
+    * ``guess``: a previous result of this function, as a warm start shifted to ``x0``; on failure the LQR
+      guess and then continuation along the ray ``s x0``, s = 1/4 .. 1, are tried.
+    * ``max_nodes``: the most mesh nodes ``solve_bvp`` may use.
+    * ``tail_tol``: infinite horizon only; the solve is flagged unless ``norm(x(t_inf)) <= tail_tol``.
+    * ``max_extensions``: infinite horizon only; while the tail check fails, ``t_inf`` is doubled up to this
+      many times (slow systems such as :func:`~pinnhjb.systems.third_order` need ``t_inf`` near 100).
+
+    Returns a dict:
+
+    * ``value``: V(x0).
+    * ``gradient``: ``lam(0) = grad_x V(x0)``.
+    * ``policy``: ``-1/2 R^{-1} g(x0)' lam(0)``, :eq:`eq-mustar` (or :eq:`eq-mut` at t = 0).
+    * ``converged``: bool; BVP status 0, residuals within ``tol`` and a small tail.
+    * ``status``, ``message``: from ``solve_bvp``.
+    * ``residual``: the largest collocation rms residual; ``bc_residual``: the boundary residual.
+    * ``tail_norm``: ``norm(x(t_inf))``.
+    * ``hamiltonian``: Hmin at t = 0 (near 0 for the infinite horizon).
+    * ``nodes``, ``x0``.
+    * ``t_inf``: the truncation used; None for a finite horizon.
+    * ``solution``: the ``solve_bvp`` result, rows x, lam and the accumulated cost.
     """
     x0 = _check_x0(system, x0)
     prob = _problem if _problem is not None else _Problem(system, horizon, terminal_cost, t_inf)
@@ -398,9 +397,22 @@ def solve_point(
 # ============================================================================ grids
 @dataclass(eq=False)
 class ReferenceGrid:
-    """Reference values on a grid: V (eq. (2) eq:cost, or V_T(., 0) of eq:costT), grad V, and the
-    policy of eq. (3) (eq:mustar / eq:muTstar at t = 0). Points that did not converge hold NaN and
-    ``converged = False``; ``status`` is the ``solve_bvp`` status (0 = success)."""
+    """Reference values on a grid, as :func:`reference_grid` computes them.
+
+    Points that did not converge hold NaN and ``converged = False``.
+
+    * ``points``: (N, n) states.
+    * ``value``: (N,), V* (the cost :eq:`eq-cost`) or V_T(., 0) (the cost :eq:`eq-costt`).
+    * ``gradient``: (N, n), grad V.
+    * ``policy``: (N, m), :eq:`eq-mustar` (or :eq:`eq-mut` at t = 0).
+    * ``horizon``: ``math.inf`` or T.
+    * ``converged``: (N,) bool.
+    * ``max_bvp_residual``: (N,), each solve's largest collocation residual.
+    * ``wall_time``: seconds.
+    * ``system``: the system's :meth:`~pinnhjb.systems.ControlAffineSystem.spec`.
+    * ``status``: (N,), the ``solve_bvp`` status (0 = success).
+    * ``info``: the settings of the solve (grid, box, tolerances, ``t_inf``, terminal cost, method).
+    """
 
     points: np.ndarray
     value: np.ndarray
@@ -417,8 +429,8 @@ class ReferenceGrid:
     _ARRAYS = ("points", "value", "gradient", "policy", "converged", "max_bvp_residual", "status")
 
     def save(self, path) -> None:
-        """Write a .npz with every array and a JSON ``metadata`` string (system spec, horizon,
-        tolerances, library versions, wall time, creation time)."""
+        """Write a .npz file at ``path``: every array, and a JSON ``metadata`` string (system, horizon, settings,
+        library versions, wall time, creation time)."""
         meta = {
             "system": self.system,
             "horizon": "inf" if math.isinf(self.horizon) else float(self.horizon),
@@ -437,6 +449,7 @@ class ReferenceGrid:
 
     @classmethod
     def load(cls, path) -> ReferenceGrid:
+        """Read a grid that :meth:`save` wrote at ``path``."""
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["metadata"]))
             arrays = {k: data[k] for k in cls._ARRAYS if k in data.files}
@@ -455,12 +468,21 @@ def reference_grid(
     strict: bool = False,
     **kw,
 ) -> ReferenceGrid:
-    """:func:`solve_point` on the tensor-product grid ``system.grid(points_per_dim, box=box)`` of Omega.
+    """:func:`solve_point` on a tensor-product grid of Omega.
 
-    Points are swept by distance from the origin; each is warm-started from its nearest solved
-    grid neighbour (see :func:`solve_point` for the fallbacks). Keyword arguments (``t_inf``,
-    ``tol``, ``max_nodes``, ``tail_tol``) go to :func:`solve_point`. Failed points are NaN with
-    ``converged = False`` and a RuntimeWarning, or a RuntimeError when ``strict``.
+    Points are swept by distance from the origin; each is warm-started from its nearest solved grid neighbour
+    (see :func:`solve_point` for the fallbacks).
+
+    * ``system``: the control-affine system.
+    * ``points_per_dim``: grid points along each axis.
+    * ``horizon``, ``terminal_cost``: as in :func:`solve_point`.
+    * ``box``: (n, 2); None: Omega.
+    * ``progress``: show a progress bar.
+    * ``strict``: raise a RuntimeError when a point fails; otherwise failed points are NaN with
+      ``converged = False``, and a RuntimeWarning says how many.
+    * ``kw``: ``t_inf``, ``tol``, ``max_nodes``, ``tail_tol``, passed to :func:`solve_point`.
+
+    Returns a :class:`ReferenceGrid`.
     """
     from tqdm.auto import tqdm
 

@@ -3,10 +3,9 @@
 A number a notebook prints may be compared, character for character, by notebook tests (nbval) on whatever
 machine runs them. It must therefore say what the text around it claims and no more:
 
-* :func:`num` prints a value that is zero up to rounding (``|x| < zero``) as zero, without a sign, and
-  everything else to the digits asked for; values below a stated floor can be printed as ``< floor``.
-* :func:`table` lays rows out as a :class:`Table`, which a notebook renders as a Markdown table (on the
-  site: a real table that scrolls inside its own box on a phone) and a terminal as aligned plain text.
+* :func:`num` prints a value that is zero up to rounding as zero, without a sign, and everything else to the
+  digits asked for; values below a stated floor can be printed as ``< floor``;
+* :func:`table` lays rows out as a :class:`Table`: a Markdown table in a notebook, aligned text in a terminal.
 """
 
 from __future__ import annotations
@@ -37,7 +36,8 @@ def num(x, spec: str = ".2e", zero: float = 1e-12, floor: float | None = None) -
 
 
 class Table:
-    """Rows under a header: Markdown in a notebook, aligned plain text elsewhere."""
+    """Rows under a header: Markdown in a notebook (on the site, a table that scrolls in its own box), aligned
+    plain text elsewhere. Arguments as in :func:`table`."""
 
     def __init__(self, header: Sequence[str], rows: Sequence[Sequence], align: str | None = None):
         self.header = [str(h) for h in header]

@@ -3,14 +3,15 @@
 Each form owns its batched residual (Adam, L-BFGS and evaluation), its per-point form (Levenberg-Marquardt
 accepts or rejects a step on it) and, where it has one, its structured Jacobian (:mod:`pinnhjb.jacobian`). The
 physics stays in :meth:`pinnhjb.systems.ControlAffineSystem.hamiltonian_min`; a form says how the value's
-derivatives enter it (:meth:`Residual.pde`). Equations are cited by the book's labels (``eq-...``).
+derivatives enter it (:meth:`Residual.pde`).
 
-* :class:`FiniteHorizonHJB` (``"hjbt"``): F_e (eq-fe) of the finite-horizon HJB (eq-hjbt) under the hard
-  ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue`, where F_b (eq-fb) and F_in (eq-fin) vanish by construction.
+* :class:`FiniteHorizonHJB` (``"hjbt"``): F_e :eq:`eq-fe` of the finite-horizon HJB :eq:`eq-hjbt` under the hard
+  ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue`, where F_b :eq:`eq-fb` and F_in :eq:`eq-fin` vanish by
+  construction.
 * :class:`SoftFiniteHorizonHJB` (``"hjbt_soft"``): the paper's soft-constraint form, F_e, F_b and F_in in the
-  loss eq-mse.
-* :class:`SteadyStateHJB` (``"hjb"``): the steady-state pointwise residual E_e (eq-ee) of the steady-state HJB
-  (eq-hjb), summed into the horizon check E (eq-e) by :mod:`pinnhjb.metrics`.
+  loss :eq:`eq-mse`.
+* :class:`SteadyStateHJB` (``"hjb"``): the steady-state pointwise residual E_e :eq:`eq-ee` of the steady-state HJB
+  :eq:`eq-hjb`, summed into the horizon check E :eq:`eq-e` by :mod:`pinnhjb.metrics`.
 
 A new form is one new class plus a registration line: subclass one of these (often only :meth:`Residual.pde`
 changes) and decorate it with :func:`register`; then ``train_finite_horizon(..., residual="its name")``.
@@ -98,7 +99,7 @@ class Residual:
         raise NotImplementedError
 
     def loss(self, *batch) -> Tensor:  # pragma: no cover - abstract
-        """The training loss on one batch: a mean of squared residuals (eq-mse)."""
+        """The training loss on one batch: a mean of squared residuals :eq:`eq-mse`."""
         raise NotImplementedError
 
     def point_arguments(self, data: dict, t: Tensor | None) -> tuple:
@@ -134,7 +135,7 @@ class _Correction(nn.Module):
 
 @register("hjbt")
 class FiniteHorizonHJB(Residual):
-    """F_e (eq-fe) of the finite-horizon HJB (eq-hjbt) under the hard ansatz; F_b and F_in vanish exactly.
+    """F_e :eq:`eq-fe` of the finite-horizon HJB :eq:`eq-hjbt` under the hard ansatz; F_b and F_in vanish exactly.
 
     * ``system``: the control-affine system.
     * ``model``: a :class:`~pinnhjb.pinn.FiniteHorizonValue` with ``ansatz=True`` to train; any module
@@ -152,7 +153,7 @@ class FiniteHorizonHJB(Residual):
         gx: Tensor | None = None,
         qx: Tensor | None = None,
     ) -> Tensor:
-        """F_e = dv/dt + min_u H(x, u, grad_x v) (eq-fe), per point (N,).
+        """F_e = dv/dt + min_u H(x, u, grad_x v) :eq:`eq-fe`, per point (N,).
 
         * ``x``: states (N, n).
         * ``grad_x``: grad_x v at the points (N, n).
@@ -191,7 +192,7 @@ class FiniteHorizonHJB(Residual):
         t_origin: Tensor | None = None,
         shared_times: tuple | None = None,
     ) -> Tensor:
-        """MSE_e, the whole of eq-mse under the ansatz: mean F_e^2 on one batch.
+        """MSE_e, the whole of :eq:`eq-mse` under the ansatz: mean F_e^2 on one batch.
 
         * ``flow``, ``t``, ``shared_times``: as in :meth:`residual`.
         * ``boundary``, ``t_origin``: unused (F_b and F_in vanish by construction).
@@ -243,7 +244,9 @@ class FiniteHorizonHJB(Residual):
 
 @register("hjbt_soft")
 class SoftFiniteHorizonHJB(FiniteHorizonHJB):
-    """The paper's soft-constraint form of eq-hjbt: F_e (eq-fe), F_b (eq-fb) and F_in (eq-fin) all in eq-mse.
+    """The paper's soft-constraint form of :eq:`eq-hjbt`: F_e, F_b and F_in all in the loss :eq:`eq-mse`.
+
+    The residuals are :eq:`eq-fe`, :eq:`eq-fb` and :eq:`eq-fin`.
 
     * ``system``: the control-affine system.
     * ``model``: a :class:`~pinnhjb.pinn.FiniteHorizonValue` with ``ansatz=False`` (the plain network N(x, t)).
@@ -265,7 +268,7 @@ class SoftFiniteHorizonHJB(FiniteHorizonHJB):
         return self.pde(x, gx, gt, flow["fx"], flow["gx"], flow["qx"])
 
     def terminal_residual(self, boundary: dict) -> Tensor:
-        """F_b = N(x, T) - phi(x) (eq-fb) on cached boundary states (N_b,).
+        """F_b = N(x, T) - phi(x) :eq:`eq-fb` on cached boundary states (N_b,).
 
         * ``boundary``: cached states ``x`` and their terminal cost ``phi``.
         """
@@ -274,7 +277,7 @@ class SoftFiniteHorizonHJB(FiniteHorizonHJB):
         return self.model.raw(xb, t_end) - boundary["phi"]
 
     def origin_residual(self, t_origin: Tensor, like: Tensor) -> Tensor:
-        """F_in = N(0, t) (eq-fin) at the given times (N_in,).
+        """F_in = N(0, t) :eq:`eq-fin` at the given times (N_in,).
 
         * ``t_origin``: times (N_in,).
         * ``like``: states (any number, n) whose dimension, dtype and device the origin takes.
@@ -290,7 +293,7 @@ class SoftFiniteHorizonHJB(FiniteHorizonHJB):
         t_origin: Tensor | None = None,
         shared_times: tuple | None = None,
     ) -> Tensor:
-        """MSE_e + MSE_b + MSE_in (eq-mse) on one batch.
+        """MSE_e + MSE_b + MSE_in :eq:`eq-mse` on one batch.
 
         * ``flow``, ``t``: the flow points, as in :meth:`residual`.
         * ``boundary``: cached terminal states for F_b.
@@ -314,7 +317,9 @@ class SoftFiniteHorizonHJB(FiniteHorizonHJB):
 
 @register("hjb")
 class SteadyStateHJB(Residual):
-    """E_e (eq-ee), the pointwise residual of the steady-state HJB (eq-hjb); its mean square plus V(0)^2 is E (eq-e).
+    """E_e :eq:`eq-ee`, the pointwise residual of the steady-state HJB :eq:`eq-hjb`.
+
+    Its mean square plus V(0)^2 is the horizon check E :eq:`eq-e`.
 
     * ``system``: the control-affine system.
     * ``model``: a :class:`~pinnhjb.pinn.SteadyStateValue` to train (per-point form and Jacobian: ansatz only);
@@ -326,7 +331,7 @@ class SteadyStateHJB(Residual):
     def pde(
         self, x: Tensor, grad_x: Tensor, fx: Tensor | None = None, gx: Tensor | None = None, qx: Tensor | None = None
     ) -> Tensor:
-        """E_e = min_u H(x, u, grad V) (eq-ee), per point (N,).
+        """E_e = min_u H(x, u, grad V) :eq:`eq-ee`, per point (N,).
 
         * ``x``: states (N, n).
         * ``grad_x``: grad V at the points (N, n).
@@ -366,7 +371,7 @@ class SteadyStateHJB(Residual):
         return self.pde(x, gx, flow["fx"], flow["gx"], flow["qx"])
 
     def loss(self, flow: dict) -> Tensor:
-        """Mean E_e^2 on one batch, plus V(0)^2 when the ansatz does not enforce V(0) = 0 (eq-e's two terms).
+        """Mean E_e^2 on one batch, plus V(0)^2 when the ansatz does not enforce V(0) = 0: the two terms of :eq:`eq-e`.
 
         * ``flow``: cached states of the batch.
         """

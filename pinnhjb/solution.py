@@ -1,15 +1,13 @@
-"""Result objects: what a solver returns, with its metrics and provenance.
+"""What a solver returns: the value, its policy, its metrics and its provenance.
 
-A :class:`FiniteHorizonSolution` is a chain of :class:`Stage` s. Stage 1 solves the finite-horizon HJB (5)
-on [0, T_1] with terminal cost phi; stage k solves eq. (HJBinc) on [0, T_k - T_{k-1}] with terminal cost
-V_{T_{k-1}}(., 0) (Theorem 2), so ``value(x, 0)`` of the whole chain is V_{T_K}(x, 0) and, more generally,
-``value(x, t)`` is V_{T_K}(x, t) for any t in [0, T_K]. A :class:`SteadyStateSolution` is the direct
-steady-state PINN (the paper's T = infinity).
+A :class:`FiniteHorizonSolution` is a chain of :class:`Stage` objects. Stage 1 solves the finite-horizon HJB
+:eq:`eq-hjbt` on [0, T_1] with terminal cost phi; stage k solves the extension HJB :eq:`eq-hjbinc` on
+[0, T_k - T_{k-1}] with terminal cost V_{T_{k-1}}(., 0) (Theorem 2), so ``value(x, t)`` of the chain is
+V_{T_K}(x, t) for any t in [0, T_K]. A :class:`SteadyStateSolution` is the direct steady-state PINN (the
+paper's T = infinity).
 
-Results are dataclasses with every field declared. Their metrics are computed once, by the solver (or read
-from a checkpoint), and passed in when the result is built; nothing in the package sets a field of a result
-afterwards: a changed result is a new one, made with :func:`dataclasses.replace` (as ``solve_until`` does to
-record its ``tol``). A :class:`Stage` is frozen.
+Results are frozen dataclasses; their metrics are computed once, by the solver or read from a checkpoint. A
+changed result is a new one, made with ``dataclasses.replace``.
 """
 
 from __future__ import annotations
@@ -64,33 +62,48 @@ class _ValueSolution:
         return self.system.check_states(xt), is_numpy
 
     def value(self, x, t: float = 0.0):
-        """V(x, t) for states x (N, n): numpy in -> numpy out, tensor in -> tensor out (detached)."""
+        """The value V(x, t).
+
+        * ``x``: (N, n) states; numpy in gives numpy out, a tensor gives a (detached) tensor.
+        * ``t``: the time, in [0, horizon].
+
+        Returns (N,).
+        """
         xt, is_numpy = self._prepare(x)
         with torch.no_grad():
             v = self._value_fn(t)(xt)
         return v.numpy() if is_numpy else v
 
     def gradient(self, x, t: float = 0.0):
-        """grad_x V(x, t), shape (N, n), by autograd."""
+        """The gradient grad_x V(x, t), by autograd; ``x`` and ``t`` as in :meth:`value`. Returns (N, n)."""
         xt, is_numpy = self._prepare(x)
         _, g = gradient(self._value_fn(t), xt)
         return g.numpy() if is_numpy else g
 
     def policy(self, x, t: float = 0.0):
-        """mu(x, t) = -1/2 R^{-1} g(x)' grad_x V(x, t) (eqs. (6), (13)), shape (N, m)."""
+        """The policy ``mu(x, t) = -1/2 R^{-1} g(x)' grad_x V(x, t)``: :eq:`eq-muhat`.
+
+        ``x`` and ``t`` as in :meth:`value`. Returns (N, m).
+        """
         xt, is_numpy = self._prepare(x)
         _, g = gradient(self._value_fn(t), xt)
         u = self.system.policy_from_gradient(xt, g).detach()
         return u.numpy() if is_numpy else u
 
     def residual_field(self, x):
-        """E_e(x; V(., 0)) (eq-ee) at the given states."""
+        """The steady-state residual E_e(x; V(., 0)) :eq:`eq-ee` at states ``x`` (N, n). Returns (N,)."""
         xt, is_numpy = self._prepare(x)
         e = SteadyStateHJB(self.system, self._value_fn(0.0)).field(xt)
         return e.numpy() if is_numpy else e
 
     def evaluate(self, points_per_dim: int | None = None) -> dict:
-        """E (eq. (IHJB_res)) on a grid over Omega, and errors against V*, mu* when the system knows them."""
+        """The horizon check E :eq:`eq-e` over Omega, and the errors against V*, mu* when the system knows them.
+
+        * ``points_per_dim``: the grid's points per axis; None: :func:`pinnhjb.metrics.default_points_per_dim`.
+
+        Returns the dict of :func:`pinnhjb.metrics.infinite_horizon_residual`, with those of
+        :func:`pinnhjb.metrics.optimality_errors` when V* is known.
+        """
         fn = self._value_fn(0.0)
         out = _metrics.infinite_horizon_residual(self.system, fn, points_per_dim=points_per_dim)
         if self.system.value_star is not None:
@@ -98,7 +111,14 @@ class _ValueSolution:
         return out
 
     def closed_loop(self, x0, t_final: float = 20.0, dt: float = 0.01) -> _metrics.ClosedLoopResult:
-        """Simulate the learned policy mu(., 0) from initial states x0 (see :func:`pinnhjb.metrics.closed_loop`)."""
+        """Simulate the learned policy mu(., 0) by :func:`pinnhjb.metrics.closed_loop`.
+
+        * ``x0``: (N, n) initial states.
+        * ``t_final``: the simulated time.
+        * ``dt``: the RK4 step.
+
+        Returns a :class:`~pinnhjb.metrics.ClosedLoopResult`.
+        """
         return _metrics.closed_loop(
             self.system, _metrics.policy_of(self.system, self._value_fn(0.0)), x0, t_final=t_final, dt=dt
         )
@@ -115,9 +135,6 @@ class Stage:
     * ``metrics``: E, E_zero and, when the system knows V*, the errors against V*, mu* of the chain ending with
       this stage (:meth:`FiniteHorizonSolution.evaluate`), computed once when the stage is built; empty when it
       was never evaluated. The stage holds its own copy.
-
-    ``length`` (= ``model.horizon``) and ``end`` (= ``start + length``, the T_k it answers V_{T_k}(., 0) for)
-    are derived.
     """
 
     model: FiniteHorizonValue
@@ -131,24 +148,26 @@ class Stage:
 
     @property
     def length(self) -> float:
+        """The stage's own horizon, ``model.horizon``."""
         return self.model.horizon
 
     @property
     def end(self) -> float:
+        """``start + length``: the T_k whose V_{T_k}(., 0) the chain ending here gives."""
         return self.start + self.length
 
 
 @dataclass(eq=False, frozen=True)
 class FiniteHorizonSolution(_ValueSolution):
-    """V_T(x, t) and mu_T(x, t) from a chain of stages (Algorithm 1 + Theorem 2).
+    """V_T(x, t) and mu_T(x, t) from a chain of stages (Algorithm 1 and Theorem 2).
 
     * ``system``: the :class:`~pinnhjb.systems.ControlAffineSystem` it solves.
     * ``config``: the :class:`~pinnhjb.config.TrainConfig` its stages were trained with.
     * ``stages``: the chain, stage 1 first (a list of :class:`Stage`, at least one); ``metrics`` are the last's.
     * ``terminal_spec``: the first stage's terminal cost phi as stored in a checkpoint (``{"kind": ...}``).
     * ``interrupted``: whether training stopped early on KeyboardInterrupt (the stages done so far are kept).
-    * ``tol``: the E that :meth:`~pinnhjb.FiniteHorizonSolver.solve_until` asked for; None otherwise (``solve``,
-      ``extend``, a loaded checkpoint). ``converged`` is derived from it.
+    * ``tol``: the E that :meth:`~pinnhjb.solver.FiniteHorizonSolver.solve_until` asked for; None otherwise
+      (``solve``, ``extend``, a loaded checkpoint). ``converged`` is derived from it.
     * ``provenance``: the versions and time stamp stored with the checkpoint it was loaded from
       (:func:`pinnhjb.storage.provenance`); None for a solution trained in this session.
     """
@@ -171,8 +190,8 @@ class FiniteHorizonSolution(_ValueSolution):
 
     @property
     def converged(self) -> bool | None:
-        """Whether E met the tolerance ``tol`` that :meth:`~pinnhjb.FiniteHorizonSolver.solve_until` asked for;
-        ``None`` when no tolerance was asked for (``solve``, ``extend``, a loaded checkpoint)."""
+        """Whether E met the tolerance ``tol`` that :meth:`~pinnhjb.solver.FiniteHorizonSolver.solve_until` asked
+        for; None when no tolerance was asked for (``solve``, ``extend``, a loaded checkpoint)."""
         return None if self.tol is None else bool(self.metrics.get("E", math.inf) <= self.tol)
 
     @property
@@ -182,14 +201,17 @@ class FiniteHorizonSolution(_ValueSolution):
 
     @property
     def horizons(self) -> list[float]:
+        """The horizon T_k reached after each stage."""
         return [s.end for s in self.stages]
 
     @property
     def metrics(self) -> dict:
+        """The last stage's metrics."""
         return self.stages[-1].metrics
 
     @property
     def wall_time(self) -> float:
+        """Training seconds, all stages together."""
         return float(sum(s.history.wall_time for s in self.stages))
 
     def _model_value(self, x: Tensor, t: float) -> Tensor:
@@ -204,15 +226,21 @@ class FiniteHorizonSolution(_ValueSolution):
         raise AssertionError("unreachable")
 
     def truncated(self, k: int) -> FiniteHorizonSolution:
-        """The solution after the first ``k`` stages (horizon T_k), sharing the trained networks."""
+        """The solution after the first ``k`` stages (horizon T_k), sharing the trained networks.
+
+        * ``k``: how many stages, 1 to ``len(stages)``.
+        """
         if not 1 <= k <= len(self.stages):
             raise ValueError(f"k must be in 1..{len(self.stages)}; got {k}")
         return FiniteHorizonSolution(self.system, self.config, self.stages[:k], self.terminal_spec)
 
     def summary(self) -> list[dict]:
-        """One row per stage: horizon reached, wall time, final loss and the stage's metrics; after
-        ``solve_until`` also ``converged`` (E <= tol at that stage: False in the last row when it stopped at
-        ``max_horizon`` short of ``tol``)."""
+        """One row per stage: ``stage``, ``horizon`` reached, ``wall_time``, ``final_loss``, ``stop_reason`` and
+        the stage's metrics.
+
+        After ``solve_until`` a row also holds ``converged``: E <= tol at that stage (False in the last row when
+        it stopped at ``max_horizon`` short of ``tol``).
+        """
         rows = [
             {
                 "stage": i + 1,
@@ -273,6 +301,7 @@ class SteadyStateSolution(_ValueSolution):
 
     @property
     def wall_time(self) -> float:
+        """Training seconds."""
         return self.history.wall_time
 
     def _model_value(self, x: Tensor, t: float) -> Tensor:

@@ -1,21 +1,15 @@
 """Checkpoints: a solved model with its system, configuration, seed, versions, wall time and metrics.
 
-Writes are atomic (a temporary file in the same folder, then ``os.replace``), get the permissions the umask
-gives a new file, and remove temporary files that an earlier, killed save of the same path left behind; loads use
-``torch.load(..., weights_only=True)`` so a checkpoint cannot run code. Loading into a system or an
-architecture that does not match fails with a message saying what differs.
+Writes are atomic and loads cannot run code (``torch.load(..., weights_only=True)``). Every checkpoint stores
+the system's :meth:`~pinnhjb.systems.ControlAffineSystem.fingerprint`, and :func:`load` refuses a system or an
+architecture that does not match, saying what differs; a checkpoint without a fingerprint is matched by
+registry name and parameters (a built-in) or by n and m (a user's system). A file with missing keys, non-finite
+weights or stages that do not chain is a :class:`CheckpointError`.
 
-Every checkpoint stores the system's fingerprint (:meth:`~pinnhjb.systems.ControlAffineSystem.fingerprint`:
-name, n, m, R, Omega, training box, and f, g, Q on fixed probe states); :func:`load` refuses a system whose
-fingerprint differs, with both fingerprints in the message. Checkpoints written before fingerprints existed
-load as before (built-ins by registry name and parameters, a user's system by n and m). A file with missing
-keys, non-finite weights or stage starts that do not chain is a :class:`CheckpointError`.
-
-Test-only switch: the environment variable ``PINNHJB_PERTURB_WEIGHTS`` (a relative size such as ``1e-13``), when
-set, makes :func:`load` multiply every loaded network weight and bias w by ``1 + eps * z``, z a standard normal
-draw from a fixed seed (the same on every load and machine), computed in float64 and rounded to the weights'
-dtype. The notebook tests run a second time under it to show that their printed outputs do not depend on
-rounding-level differences (another CPU, another BLAS). Unset or empty: weights load exactly.
+Test-only switch: the environment variable ``PINNHJB_PERTURB_WEIGHTS``, a relative size eps such as ``1e-13``,
+makes :func:`load` multiply every weight and bias w by ``1 + eps * z``, z standard normal from a fixed seed
+(the same on every load and machine). The notebook tests run a second time under it, to show that their
+printed outputs do not depend on rounding (another CPU, another BLAS). Unset or empty: weights load exactly.
 """
 
 from __future__ import annotations
@@ -48,7 +42,7 @@ class CheckpointError(ValueError):
 
 
 def provenance(**extra) -> dict:
-    """Versions and time stamp recorded with every artifact."""
+    """The versions and time stamp recorded with every artifact; ``extra`` key/values are added."""
     from . import __version__
 
     info = {
@@ -119,10 +113,19 @@ def _state(model) -> dict:
 
 
 def save(solution, path, **extra) -> Path:
-    """Save a :class:`FiniteHorizonSolution` or :class:`SteadyStateSolution` to ``path`` (atomic).
+    """Save a solution to a checkpoint file, atomically.
 
-    A user's own system (not in the registry) is stored by name and dimensions only; pass it to
-    :func:`load` again. ``extra`` key/values are added to the provenance record."""
+    A temporary file in the same folder is renamed into place; it gets the permissions the umask gives a new
+    file, and temporary files that a killed save of the same path left behind are removed.
+
+    * ``solution``: a :class:`~pinnhjb.solution.FiniteHorizonSolution` or
+      :class:`~pinnhjb.solution.SteadyStateSolution`.
+    * ``path``: the file to write.
+    * ``extra``: key/values added to the provenance record.
+
+    Returns the path. A user's own system (not in the registry) is stored by name and dimensions only: pass it
+    to :func:`load` again.
+    """
     if not isinstance(solution, (FiniteHorizonSolution, SteadyStateSolution)):
         raise TypeError(f"cannot save a {type(solution).__name__}")
     path = Path(path)
@@ -204,7 +207,7 @@ def _check_system(ckpt: dict, system, path=None):
 
 
 def _check_fingerprint(stored: dict | None, system, path):
-    """Refuse a system whose fingerprint differs from the stored one (none stored: an older file, no check)."""
+    """Refuse a system whose fingerprint differs from the stored one (none stored: no check)."""
     if stored is None:
         return
     current = system.fingerprint()
@@ -322,11 +325,20 @@ def _terminal(term: dict, given, path):
 
 
 def load(path, system=None, device=None, config: TrainConfig | None = None, terminal_cost=None):
-    """Load a solution saved by :func:`save`. ``system`` is rebuilt from the registry when omitted (and
-    checked against the checkpoint's fingerprint when given); ``config``, if given, must match the stored
-    architecture. ``terminal_cost`` (a :class:`~pinnhjb.pinn.CallableTerminalCost` of the same name) is required
-    for, and only for, a checkpoint saved with a named callable terminal cost. The solution's ``metrics`` are the
-    stored ones (not recomputed) and its ``provenance`` is the checkpoint's record."""
+    """Load a solution saved by :func:`save`.
+
+    * ``path``: the checkpoint file.
+    * ``system``: the system it was trained on, checked against the stored fingerprint; None: rebuilt from the
+      registry (built-ins only).
+    * ``device``: where the networks go; None: CUDA when present.
+    * ``config``: a :class:`~pinnhjb.config.TrainConfig` that must match the stored architecture; None: the
+      stored one.
+    * ``terminal_cost``: a :class:`~pinnhjb.pinn.CallableTerminalCost` of the same name; required for, and only
+      for, a checkpoint saved with a named callable terminal cost.
+
+    Returns the solution; its ``metrics`` are the stored ones (not recomputed) and its ``provenance`` is the
+    checkpoint's record.
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint at {path}")

@@ -1,16 +1,9 @@
-"""Control-affine systems as data: ``xdot = f(x) + g(x) u`` with cost ``Q(x) + u'Ru`` (paper eq. (1)-(2)).
+"""Control-affine systems as data: ``xdot = f(x) + g(x) u`` :eq:`eq-sys` with cost ``Q(x) + u'Ru`` :eq:`eq-cost`.
 
-A :class:`ControlAffineSystem` holds batched torch callables ``f: (N,n) -> (N,n)``,
-``g: (N,n) -> (N,n,m)`` and ``Q: (N,n) -> (N,)``, the control weight ``R`` (m x m), the
-approximation set ``Omega`` (a box, where results are judged), the training box, and optionally
-the known optimal value ``V*`` and policy ``mu*``. Construction probes every function with a
-small batch and fails with a message naming the function and the shape it returned, checks that f, g and Q
-are finite on a larger probe of the training box (and f(0) = 0, Q(0) = 0), and warns when Omega does not
-contain the origin or the training box does not contain Omega. :meth:`ControlAffineSystem.linearize` gives
-the linearisation (A, B, Q) at the origin.
-
-Built-ins reproduce the paper's Section 6 with its constants: :func:`pendulum`, :func:`quartic`
-(with the erratum on its state cost, see there), :func:`third_order`, and :func:`linear_quadratic`.
+A :class:`ControlAffineSystem` holds batched torch callables f, g, Q, the control weight R, the set Omega where
+results are judged, the training box, and optionally the known V* and mu*; it checks them when built. The
+built-ins are the paper's Section 6 with its constants: :func:`pendulum`, :func:`quartic`, :func:`third_order`
+and :func:`linear_quadratic`.
 """
 
 from __future__ import annotations
@@ -41,7 +34,12 @@ __all__ = [
 
 
 class Linearization(NamedTuple):
-    """xdot ~ A x + B u and Q(x) ~ x' Q x near the origin (A = df/dx(0), B = g(0), Q = Hessian of Q at 0 / 2)."""
+    """The linearisation at the origin: ``xdot ~ A x + B u`` and ``Q(x) ~ x'Qx``.
+
+    * ``A``: (n, n), ``df/dx(0)``.
+    * ``B``: (n, m), ``g(0)``.
+    * ``Q``: (n, n), half the Hessian of Q at 0.
+    """
 
     A: np.ndarray
     B: np.ndarray
@@ -66,18 +64,25 @@ def _as_box(box, n: int | None, what: str) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class ControlAffineSystem:
-    """A control-affine system with quadratic-in-u cost (paper eqs. (1)-(2)).
+    """A control-affine system :eq:`eq-sys` with a cost quadratic in u :eq:`eq-cost`.
 
-    Parameters
-    ----------
-    name : label (built-ins use their registry name so checkpoints can rebuild them).
-    f, g, Q : batched torch callables, ``f(x)`` (N,n), ``g(x)`` (N,n,m), ``Q(x)`` (N,) for x (N,n).
-    R : (m, m) symmetric positive definite control weight.
-    domain : Omega, the approximation set where E and errors are measured, box (n, 2).
-    train_domain : box sampled during training (defaults to ``domain``; the paper enlarges it).
-    value_star, policy_star : optional known V* (N,) and mu* (N,m) for error reports.
-    params, builder : a registry name and keyword arguments that rebuild a built-in via
-        :func:`get_system` (used by storage); ``None`` for a user's own system.
+    Construction probes every function with a small batch and fails with a message naming the function and
+    the shape it returned; checks that f, g and Q are finite on the training box, f(0) = 0 and Q(0) = 0; and
+    warns when Omega does not contain the origin or the training box does not contain Omega.
+
+    * ``name``: a label; the built-ins use their registry name, so that checkpoints can rebuild them.
+    * ``f``: batched torch callable, x (N, n) -> (N, n).
+    * ``g``: batched torch callable, x (N, n) -> (N, n, m).
+    * ``Q``: batched torch callable, x (N, n) -> (N,), positive definite.
+    * ``R``: (m, m) symmetric positive definite control weight.
+    * ``domain``: Omega, the box (n, 2) where E and the errors are measured.
+    * ``train_domain``: the box (n, 2) sampled in training; None: ``domain`` (the paper enlarges it).
+    * ``value_star``: the known V*, x (N, n) -> (N,), for error reports; None if unknown.
+    * ``policy_star``: the known mu*, x (N, n) -> (N, m); None if unknown.
+    * ``params``: the keyword arguments that rebuild a built-in through :func:`get_system` (storage uses
+      them); None for a user's own system.
+    * ``builder``: the registry name that rebuilds a built-in; None for a user's own system.
+    * ``n``, ``m``: the state and input dimensions, set from ``domain`` and ``R``.
     """
 
     name: str
@@ -194,7 +199,11 @@ class ControlAffineSystem:
         )
 
     def check_finite(self, x: Tensor, where: str):
-        """Raise a ValueError naming the function and a state where f, g or Q is NaN or infinite on ``x``."""
+        """Raise a ValueError naming the function and a state where f, g or Q is NaN or infinite.
+
+        * ``x``: (N, n) states.
+        * ``where``: what ``x`` is, for the message.
+        """
         with torch.no_grad():
             for key in ("f", "g", "Q"):
                 out = getattr(self, key)(x)
@@ -226,9 +235,11 @@ class ControlAffineSystem:
             )
 
     def linearize(self) -> Linearization:
-        """The linearisation at the origin: ``A = df/dx(0)`` (n, n), ``B = g(0)`` (n, m) and ``Q`` (n, n) with
-        Q(x) ~ x'Qx (half the Hessian of Q at 0), as numpy arrays (by autograd, float64 on the CPU); R is
-        ``self.R``. With :func:`pinnhjb.lq.care` it gives the LQR value x'Px of the linearised problem."""
+        """The linearisation at the origin, by autograd in float64 on the CPU.
+
+        With :func:`pinnhjb.lq.care` (and ``self.R``) it gives the LQR value ``x'Px`` of the linearised problem.
+        Returns a :class:`Linearization` of numpy arrays.
+        """
         zero = torch.zeros(self.n, dtype=torch.float64)
         try:
             A = torch.autograd.functional.jacobian(lambda z: self.f(z[None])[0], zero)
@@ -248,7 +259,13 @@ class ControlAffineSystem:
         return torch.as_tensor(self._R_inv, dtype=like.dtype, device=like.device)
 
     def check_states(self, x: Tensor, what: str = "x") -> Tensor:
-        """Validate a batch of states: a tensor of shape (N, n) with finite entries."""
+        """Validate a batch of states: a tensor of shape (N, n) with finite entries.
+
+        * ``x``: the states, a tensor or anything numpy reads.
+        * ``what``: its name, for the message.
+
+        Returns ``x`` as a tensor.
+        """
         if not isinstance(x, torch.Tensor):
             x = torch.as_tensor(np.asarray(x))
         if x.ndim != 2 or x.shape[1] != self.n:
@@ -258,18 +275,29 @@ class ControlAffineSystem:
         return x
 
     def policy_from_gradient(self, x: Tensor, grad_v: Tensor) -> Tensor:
-        """mu(x) = -1/2 R^{-1} g(x)' grad V(x)  (paper eqs. (3), (6), (13)); returns (N, m)."""
+        """The policy of a value's gradient, ``mu(x) = -1/2 R^{-1} g(x)' grad V(x)``: :eq:`eq-mustar`, :eq:`eq-mut`.
+
+        * ``x``: (N, n) states.
+        * ``grad_v``: (N, n), the value's gradient at ``x``.
+
+        Returns (N, m).
+        """
         gTp = torch.einsum("bnm,bn->bm", self.g(x), grad_v)
         return -0.5 * gTp @ self.R_inv_tensor(x).T
 
     def hamiltonian_min(
         self, x: Tensor, grad_v: Tensor, fx: Tensor | None = None, gx: Tensor | None = None, qx: Tensor | None = None
     ) -> Tensor:
-        """min_u H(x, u, p) = p'f + Q - 1/4 p' g R^{-1} g' p: the left side of the steady-state HJB (eq. (4)).
+        """``min_u H(x, u, p) = p'f + Q - 1/4 p' g R^{-1} g' p``: the left side of the steady-state HJB :eq:`eq-hjb`.
 
-        With p = grad_x V(x, t) and ``+ dV/dt`` it is the flow residual F_e of eq. (5)/(HJBT); at t = 0 it
-        is the infinite-horizon flow residual E_e of eq. (flow_res). ``fx, gx, qx`` may be passed when
-        cached.
+        With ``p = grad_x V(x, t)`` and ``+ dV/dt`` it is the flow residual :eq:`eq-fe`; with V_T(., 0) it is the
+        steady-state residual :eq:`eq-ee`.
+
+        * ``x``: (N, n) states.
+        * ``grad_v``: (N, n), p.
+        * ``fx``, ``gx``, ``qx``: f, g and Q at ``x`` when already computed; None: computed here.
+
+        Returns (N,).
         """
         fx = self.f(x) if fx is None else fx
         gx = self.g(x) if gx is None else gx
@@ -279,16 +307,23 @@ class ControlAffineSystem:
         return (grad_v * fx).sum(-1) + qx - 0.25 * quad
 
     def dynamics(self, x: Tensor, u: Tensor) -> Tensor:
-        """xdot = f(x) + g(x) u  (eq. (1))."""
+        """``xdot = f(x) + g(x) u`` :eq:`eq-sys` for states x (N, n) and inputs u (N, m); returns (N, n)."""
         return self.f(x) + torch.einsum("bnm,bm->bn", self.g(x), u)
 
     def running_cost(self, x: Tensor, u: Tensor) -> Tensor:
-        """Q(x) + u'Ru, the integrand of eq. (2)."""
+        """``Q(x) + u'Ru``, the integrand of :eq:`eq-cost`, for x (N, n) and u (N, m); returns (N,)."""
         return self.Q(x) + torch.einsum("bi,ij,bj->b", u, self.R_tensor(u), u)
 
     # ------------------------------------------------------------------ sampling helpers
     def grid(self, points_per_dim: int, dtype=torch.float64, device=None, box: np.ndarray | None = None) -> Tensor:
-        """A tensor-product grid over Omega (or ``box``): shape (points_per_dim**n, n)."""
+        """A tensor-product grid over Omega.
+
+        * ``points_per_dim``: points along each axis.
+        * ``dtype``, ``device``: of the result.
+        * ``box``: (n, 2); None: Omega.
+
+        Returns (points_per_dim**n, n).
+        """
         box = self.domain if box is None else box
         axes = [torch.linspace(float(lo), float(hi), points_per_dim, dtype=dtype, device=device) for lo, hi in box]
         mesh = torch.meshgrid(*axes, indexing="ij")
@@ -297,7 +332,15 @@ class ControlAffineSystem:
     def sample(
         self, count: int, generator: torch.Generator, dtype=torch.float32, device=None, box: np.ndarray | None = None
     ) -> Tensor:
-        """Uniform samples from the training box (or ``box``): shape (count, n)."""
+        """Uniform samples from the training box.
+
+        * ``count``: how many.
+        * ``generator``: the torch generator that draws them.
+        * ``dtype``, ``device``: of the result.
+        * ``box``: (n, 2); None: the training box.
+
+        Returns (count, n).
+        """
         box = self.train_domain if box is None else box
         lo = torch.as_tensor(box[:, 0], dtype=dtype, device=device)
         hi = torch.as_tensor(box[:, 1], dtype=dtype, device=device)
@@ -305,9 +348,11 @@ class ControlAffineSystem:
         return lo + (hi - lo) * u.to(device)
 
     def fingerprint(self) -> dict:
-        """What identifies this system in a checkpoint: name, n, m, R, Omega, the training box, and f, g, Q on
-        :data:`FINGERPRINT_PROBES` fixed states of Omega (float64, CPU), as plain lists. See
-        :func:`fingerprint_difference`."""
+        """What identifies this system in a checkpoint, as plain lists.
+
+        The name, n, m, R, Omega, the training box, and f, g, Q on :data:`FINGERPRINT_PROBES` fixed states of
+        Omega (float64, CPU). Compared by :func:`fingerprint_difference`.
+        """
         u = np.random.default_rng(20261201).uniform(-1.0, 1.0, (FINGERPRINT_PROBES, self.n))
         centre, half = self.domain.mean(axis=1), (self.domain[:, 1] - self.domain[:, 0]) / 2
         x = torch.as_tensor(centre + half * u, dtype=torch.float64)
@@ -343,12 +388,17 @@ class ControlAffineSystem:
 
 # ====================================================================== fingerprints
 
+#: How many fixed states of Omega a fingerprint evaluates f, g and Q on.
 FINGERPRINT_PROBES = 8
 
 
 def fingerprint_difference(stored: dict, current: dict, rtol: float = 1e-7) -> list[str]:
-    """The fields in which two fingerprints differ (empty when they match); f, g, Q to relative ``rtol`` (the
-    same functions evaluated by another CPU or BLAS agree to rounding)."""
+    """The fields in which two fingerprints differ; empty when they match.
+
+    * ``stored``: the fingerprint saved with a checkpoint.
+    * ``current``: the fingerprint of the system at hand.
+    * ``rtol``: relative tolerance on f, g, Q (the same functions on another CPU or BLAS agree to rounding).
+    """
     diffs = [k for k in ("name", "n", "m") if stored.get(k) != current.get(k)]
     if diffs:
         return diffs
@@ -364,7 +414,7 @@ def fingerprint_difference(stored: dict, current: dict, rtol: float = 1e-7) -> l
 
 
 def fingerprint_summary(fp: dict) -> str:
-    """A one-line account of a fingerprint: name, n, m, R, boxes, and a digest of f, g, Q on the probes."""
+    """A one-line account of a fingerprint ``fp``: name, n, m, R, boxes, and a digest of f, g, Q on the probes."""
     import hashlib
 
     def digest(key):
@@ -394,10 +444,12 @@ def _positive(value, name: str, system: str) -> float:
 
 
 def pendulum(R: float = 1.0) -> ControlAffineSystem:
-    """Torsional pendulum of Section 6.1: M = 1/3 kg, l = 2/3 m, J = 4/3 M l^2, f_d = 0.2, g = 9.8.
+    """The torsional pendulum of Section 6.1: M = 1/3 kg, l = 2/3 m, J = 4/3 M l^2, f_d = 0.2, g = 9.8.
 
-    f(x) = [x2, (-M g l sin x1 - f_d x2)/J], g(x) = [0, 1/J]', Q(x) = x1^2 + x2^2, R = 1,
-    Omega = [-1, 1]^2, trained on [-1.5, 1.5]^2 as in the paper.
+    ``f(x) = [x2, (-M g l sin x1 - f_d x2)/J]``, ``g(x) = [0, 1/J]'``, ``Q(x) = x1^2 + x2^2``, Omega = [-1, 1]^2,
+    trained on [-1.5, 1.5]^2 as in the paper.
+
+    * ``R``: the control weight (the paper: 1).
     """
     R = _positive(R, "R", "pendulum")
     M, l, fd, grav = 1.0 / 3.0, 2.0 / 3.0, 0.2, 9.8
@@ -431,16 +483,17 @@ QUARTIC_STATE_COSTS = ("consistent", "paper")
 
 
 def quartic(state_cost: str = "consistent") -> ControlAffineSystem:
-    """System with a known quartic value function (Section 6.2, from Vrabie & Lewis 2009).
+    """The system with a known quartic value function of Section 6.2 (from Vrabie & Lewis 2009).
 
-    f(x) = [-x1 + x2 + 2 x2^3, -(x1 + x2)/2 + x2 (1 + 2 x2^2) sin^2(x1) / 2], g(x) = [0, sin x1]', R = 1,
-    V*(x) = x1^2/2 + x2^2 + x2^4, mu*(x) = -sin(x1)(x2 + 2 x2^3), Omega = [-1.2, 1.2]^2 (trained on
-    [-1.5, 1.5]^2).
+    ``f(x) = [-x1 + x2 + 2 x2^3, -(x1 + x2)/2 + x2 (1 + 2 x2^2) sin^2(x1) / 2]``, ``g(x) = [0, sin x1]'``,
+    R = 1, ``V*(x) = x1^2/2 + x2^2 + x2^4``, ``mu*(x) = -sin(x1)(x2 + 2 x2^3)``, Omega = [-1.2, 1.2]^2, trained
+    on [-1.5, 1.5]^2.
 
-    **Erratum.** The paper prints Q(x) = x1^2 + x2^2 + x2^4, but the stated V* solves the HJB (4) only for
-    Q(x) = x1^2 + x2^2 + 2 x2^4: with the printed Q the HJB residual of V* is exactly -x2^4. The default
-    ``state_cost="consistent"`` uses the Q for which V* is optimal; ``state_cost="paper"`` keeps the
-    printed Q (then V* and mu* are *not* optimal and are not attached).
+    **Erratum.** The paper prints ``Q(x) = x1^2 + x2^2 + x2^4``, but the stated V* solves the HJB :eq:`eq-hjb`
+    only for ``Q(x) = x1^2 + x2^2 + 2 x2^4``: with the printed Q the HJB residual of V* is exactly ``-x2^4``.
+
+    * ``state_cost``: ``"consistent"``, the Q for which V* is optimal; or ``"paper"``, the printed Q (then V*
+      and mu* are not optimal and are not attached).
     """
     if state_cost not in QUARTIC_STATE_COSTS:
         raise ValueError(f"state_cost must be one of {QUARTIC_STATE_COSTS}; got {state_cost!r}")
@@ -483,11 +536,13 @@ def quartic(state_cost: str = "consistent") -> ControlAffineSystem:
 
 
 def third_order(R: float = 1.0) -> ControlAffineSystem:
-    """Third-order system of Section 6.3: K = 0.05, C = 3.5, a = 5.5, b = 4, Q(x) = |x|^2.
+    """The third-order system of Section 6.3: K = 0.05, C = 3.5, a = 5.5, b = 4, ``Q(x) = x'x``.
 
-    f(x) = [-2 x1 + x2^3, -C x2 + x3, -K (a x2^3 + b x2 + x1^3)], g(x) = [0, 0, K]', Omega = [-0.2, 0.2]^3.
-    The paper does not state an enlarged training set for this case; we train on [-0.25, 0.25]^3
-    (the same 1.25x margin as the quartic system) and judge on Omega.
+    ``f(x) = [-2 x1 + x2^3, -C x2 + x3, -K (a x2^3 + b x2 + x1^3)]``, ``g(x) = [0, 0, K]'``,
+    Omega = [-0.2, 0.2]^3. The paper states no enlarged training set for this case; it is trained on
+    [-0.25, 0.25]^3 (the quartic system's 1.25x margin) and judged on Omega.
+
+    * ``R``: the control weight (the paper varies it: Table 2).
     """
     R = _positive(R, "R", "third_order")
     K, C, a, b = 0.05, 3.5, 5.5, 4.0
@@ -518,12 +573,20 @@ def third_order(R: float = 1.0) -> ControlAffineSystem:
 
 
 def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") -> ControlAffineSystem:
-    """Linear system xdot = A x + B u with cost x'Qx + u'Ru; V*(x) = x'Px with P the stabilizing CARE
-    solution (scipy), mu*(x) = -R^{-1} B' P x.
+    """The linear system ``xdot = A x + B u`` with cost ``x'Qx + u'Ru``, with its known V* and mu*.
 
-    ``train_domain`` defaults, like the built-ins', to a box larger than Omega: Omega enlarged by 25% about its
-    centre (the quartic and third-order systems' margin), so that E is judged inside what was trained; pass
-    ``train_domain=domain`` to train on Omega itself."""
+    ``V*(x) = x'Px`` with P the stabilizing ARE solution (:func:`pinnhjb.lq.care`), ``mu*(x) = -R^{-1} B' P x``.
+
+    * ``A``: (n, n).
+    * ``B``: (n, m), or (n,) for one input.
+    * ``Q``: (n, n), symmetric positive semidefinite.
+    * ``R``: (m, m), symmetric positive definite.
+    * ``domain``: Omega, a box (n, 2).
+    * ``train_domain``: the training box; None: Omega enlarged by 25% about its centre (the quartic and
+      third-order systems' margin), so that E is judged inside what was trained. Pass ``domain`` to train on
+      Omega itself.
+    * ``name``: the system's label.
+    """
     from . import lq  # local import: lq is numpy/scipy only
 
     domain = _as_box(domain, np.atleast_2d(np.asarray(A, dtype=float)).shape[0], "domain (Omega)")
@@ -581,6 +644,9 @@ def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") ->
     )
 
 
+#: The registry of built-in systems: name -> builder.
+#:
+#: :meta hide-value:
 SYSTEMS: dict[str, Callable[..., ControlAffineSystem]] = {
     "pendulum": pendulum,
     "quartic": quartic,
@@ -590,7 +656,11 @@ SYSTEMS: dict[str, Callable[..., ControlAffineSystem]] = {
 
 
 def get_system(name: str, /, **params) -> ControlAffineSystem:
-    """Build a registered system by name (``pendulum``, ``quartic``, ``third_order``, ``lq``)."""
+    """Build a registered system by name.
+
+    * ``name``: ``"pendulum"``, ``"quartic"``, ``"third_order"`` or ``"lq"`` (the keys of :data:`SYSTEMS`).
+    * ``params``: the builder's keyword arguments.
+    """
     if name not in SYSTEMS:
         raise KeyError(f"unknown system {name!r}; known systems: {sorted(SYSTEMS)}")
     return SYSTEMS[name](**params)

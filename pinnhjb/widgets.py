@@ -1,10 +1,9 @@
 """Explorers over the horizon T or the weight R: one set of precomputed frames, two renderings.
 
-:func:`explorer` draws a figure for every value once (matplotlib, closed after rendering to PNG) and returns a
-:class:`FrameExplorer`. Displayed in a live Jupyter kernel it is an ipywidgets slider that swaps the
-precomputed images (instant response, no redrawing); on the static book site, where no kernel runs, the same
-output carries a self-contained HTML slider (inline images and a few lines of JavaScript, no CDN) that the
-book renders instead (``_config.yml`` puts ``text/html`` before the widget view for the HTML builder).
+:func:`explorer` draws a figure for every value once and returns a :class:`FrameExplorer`. In a live Jupyter
+kernel it is an ipywidgets slider that swaps the precomputed images; on the static site, where no kernel runs,
+the same output carries a self-contained HTML slider (inline images and a few lines of JavaScript, no CDN),
+which the book renders instead (``_config.yml`` puts ``text/html`` before the widget view).
 """
 
 from __future__ import annotations
@@ -24,7 +23,7 @@ SCALE = 2  # frames are drawn at 2 x 100 dpi and displayed at 100 CSS px per inc
 
 
 def figure_png(fig, dpi: int = 100 * SCALE) -> bytes:
-    """PNG bytes of a figure, which is then closed."""
+    """The PNG bytes of a matplotlib figure ``fig``, which is then closed; ``dpi``: the resolution."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight", metadata={"Software": None})
     plt.close(fig)
@@ -32,14 +31,22 @@ def figure_png(fig, dpi: int = 100 * SCALE) -> bytes:
 
 
 def png_width(png: bytes) -> int:
-    """The width in pixels stored in a PNG's header."""
+    """The width in pixels stored in the header of the PNG bytes ``png``."""
     if png[:8] != b"\x89PNG\r\n\x1a\n":
         raise ValueError("not a PNG image")
     return struct.unpack(">I", png[16:20])[0]
 
 
 class FrameExplorer:
-    """Precomputed frames, one per value, with a live (ipywidgets) and a static (HTML + JS) rendering."""
+    """Precomputed frames, one per value, with a live (ipywidgets) and a static (HTML and JavaScript) rendering.
+
+    * ``frames``: one PNG (bytes) per value.
+    * ``values``: the slider's values, in order.
+    * ``label``, ``fmt``: the slider's name and how a value is printed.
+    * ``start``: the index shown first.
+    * ``alt``: what the figure shows, for readers who cannot see it (the value is appended).
+    * ``scale``: the frames' pixels per CSS pixel.
+    """
 
     def __init__(
         self,

@@ -24,10 +24,22 @@ __all__ = [
     "load_results",
 ]
 
+#: The artifacts folder, relative to the working directory.
 DEFAULT_OUT = Path("artifacts")
 
 
+def _case(case: str | Case) -> Case:
+    """A case by name (a :class:`Case` is returned as it is); a KeyError names an unknown one and the known ones."""
+    if isinstance(case, Case):
+        return case
+    for c in CASES:
+        if c.name == case:
+            return c
+    raise KeyError(f"unknown case {case!r}; known: {[c.name for c in CASES]}")
+
+
 def checkpoint_path(out: Path, case: str, seed: int) -> Path:
+    """Where a case's checkpoint for one seed lives: ``<out>/checkpoints/<case>/seed<seed>.pt``."""
     return Path(out) / "checkpoints" / case / f"seed{seed}.pt"
 
 
@@ -36,13 +48,17 @@ def _system_key(case: Case) -> str:
 
 
 def reference_path(out: Path, case: Case, horizon: float) -> Path:
+    """Where a case's reference grid for one horizon (``inf``: V*) lives, under ``<out>/reference/``."""
     tag = "inf" if horizon == INF else f"T{horizon:g}"
     return Path(out) / "reference" / f"{_system_key(case)}_{tag}.npz"
 
 
 def artifacts_dir() -> Path:
-    """Where the committed artifacts are: ``$PINNHJB_ARTIFACTS``, else the nearest ``artifacts/`` folder
-    with checkpoints in the working directory or above it (notebooks run from ``notebooks/``)."""
+    """Where the committed artifacts are.
+
+    ``$PINNHJB_ARTIFACTS``, else the nearest ``artifacts/`` folder with checkpoints in the working directory or
+    above it (notebooks run from ``notebooks/``).
+    """
     env = os.environ.get("PINNHJB_ARTIFACTS")
     if env:
         return Path(env)
@@ -56,10 +72,14 @@ _RETRAINED: set = set()
 
 
 def load_case(case: str, seed: int = 0, out: Path | None = None, device=None, retrain: bool = False):
-    """The stored solution of a case (as the notebooks load it).
+    """The stored solution of a case, as the notebooks load it.
 
-    ``retrain=True`` (a notebook's ``RETRAIN`` switch) first trains this case and seed again with the
-    default recipe, in place (checkpoint and results table, as ``reproduce --cases``), once per process.
+    * ``case``: a case's name (:data:`~pinnhjb.paper.cases.CASES`); an unknown one is a KeyError.
+    * ``seed``: the seed.
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    * ``device``: where the networks go; None: CUDA when present.
+    * ``retrain``: a notebook's ``RETRAIN`` switch; first train this case and seed again with the default
+      recipe, in place (checkpoint and results table, as ``reproduce --cases``), once per process.
     """
     if case not in {c.name for c in CASES}:
         raise KeyError(f"unknown case {case!r}; known: {[c.name for c in CASES]}")
@@ -73,14 +93,19 @@ def load_case(case: str, seed: int = 0, out: Path | None = None, device=None, re
 
 
 def stored_seeds(case: str, out: Path | None = None) -> list[int]:
-    """The seeds with a stored checkpoint for ``case``."""
+    """The seeds with a stored checkpoint for ``case`` (a name) under ``out`` (None: :func:`artifacts_dir`)."""
     folder = Path(out or artifacts_dir()) / "checkpoints" / case
     return sorted(int(p.stem[4:]) for p in folder.glob("seed*.pt"))
 
 
 def stage_metric(case: str, key: str, out: Path | None = None) -> dict[float, list[float]]:
-    """Metric ``key`` of every stored seed of a chain case, per horizon: ``{T: [value per seed]}``."""
-    spec = next(c for c in CASES if c.name == case)
+    """A metric of every stored seed of a chain case, per horizon: ``{T: [value per seed]}``.
+
+    * ``case``: the case's name; an unknown one is a KeyError.
+    * ``key``: a metric of :meth:`~pinnhjb.solution.FiniteHorizonSolution.summary`, e.g. ``"E"``.
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    """
+    spec = _case(case)
     values: dict[float, list[float]] = {T: [] for T in spec.horizons}
     for seed in stored_seeds(case, out):
         for T, row in zip(spec.horizons, load_case(case, seed, out).summary()):
@@ -89,19 +114,32 @@ def stage_metric(case: str, key: str, out: Path | None = None) -> dict[float, li
 
 
 def reference_residual(case: str | Case, horizon: float, out: Path | None = None) -> float:
-    """E of the stored exact (reference) V_T(., 0): the part of a PINN's E that is due to the horizon alone."""
-    case = case if isinstance(case, Case) else next(c for c in CASES if c.name == case)
+    """E of the stored exact (reference) V_T(., 0): the part of a PINN's E that is due to the horizon alone.
+
+    * ``case``: a :class:`~pinnhjb.paper.cases.Case` or its name; an unknown name is a KeyError.
+    * ``horizon``: T.
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    """
+    case = _case(case)
     return reference_grid_residual(case.build_system(), load_reference(case, horizon, out))
 
 
 def load_reference(case: str | Case, horizon: float = INF, out: Path | None = None):
+    """A case's stored :class:`~pinnhjb.reference.ReferenceGrid`.
+
+    * ``case``: a :class:`~pinnhjb.paper.cases.Case` or its name; an unknown name is a KeyError.
+    * ``horizon``: T, or ``inf`` for V*.
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    """
     from ..reference import ReferenceGrid
 
-    case = case if isinstance(case, Case) else next(c for c in CASES if c.name == case)
+    case = _case(case)
     return ReferenceGrid.load(reference_path(out or artifacts_dir(), case, horizon))
 
 
 def load_results(out: Path | None = None) -> dict:
-    """The results table written by :func:`pinnhjb.paper.reproduce.run` (``summary`` rows, ``records`` per seed,
-    ``meta``)."""
+    """The results written by :func:`pinnhjb.paper.reproduce.run`: ``summary`` rows, ``records`` per seed, ``meta``.
+
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    """
     return json.loads((Path(out or artifacts_dir()) / "results" / "reproduce.json").read_text())

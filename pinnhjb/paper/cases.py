@@ -24,9 +24,16 @@ INF = math.inf
 
 @dataclass(frozen=True)
 class Case:
-    """One simulation: a chain (first horizon, extended to ``to`` in ``step`` s) or the steady-state PINN.
+    """One simulation: a chain (a first horizon, extended to ``to`` in steps of ``step``) or the steady-state PINN.
 
-    ``paper`` maps a horizon (``inf`` for the steady-state PINN) to the paper's reported E.
+    * ``name``: the case's name (checkpoints, tables).
+    * ``system``: the registry name of its system (:func:`pinnhjb.systems.get_system`).
+    * ``params``: the system's parameters.
+    * ``kind``: ``"chain"`` or ``"steady"``.
+    * ``first``: the first horizon.
+    * ``to``: the horizon the chain is extended to; None: one stage.
+    * ``step``: the extension's step.
+    * ``paper``: horizon (``inf`` for the steady-state PINN) -> the paper's reported E.
     """
 
     name: str
@@ -39,10 +46,12 @@ class Case:
     paper: dict = field(default_factory=dict)
 
     def build_system(self):
+        """The case's system."""
         return get_system(self.system, **self.params)
 
     @property
     def horizons(self) -> list[float]:
+        """The horizons the case reaches, in order (``[inf]`` for the steady-state PINN)."""
         if self.kind == "steady":
             return [INF]
         if self.to is None:
@@ -51,8 +60,12 @@ class Case:
         return [round(self.first + k * self.step, 9) for k in range(n + 1)]
 
 
+#: The paper's Table 2: R -> E of the third-order system at T = 0.5.
 THIRD_ORDER_PAPER = {0.01: 0.0008, 0.1: 0.1152, 1.0: 0.0430, 10.0: 0.0031, 100.0: 0.0027}
 
+#: Every case of the reproduction, in the order of the results table.
+#:
+#: :meta hide-value:
 CASES: list[Case] = [
     Case(
         "pendulum_extension",
@@ -81,21 +94,26 @@ CASES: list[Case] = [
     for R, E in THIRD_ORDER_PAPER.items()
 ]
 
-# Reference grid resolution (points per axis) for V* and for the finite-horizon V_T, by state dimension.
+#: Reference grid resolution (points per axis) for V* and for the finite-horizon V_T, by mode and state dimension.
 REFERENCE_POINTS = {"full": {2: (41, 21), 3: (5, 5)}, "quick": {2: (5, 5), 3: (3, 3)}}
+#: The closed-loop runs' settings, by mode.
 CLOSED_LOOP = {"full": {"t_final": 20.0, "dt": 0.01}, "quick": {"t_final": 10.0, "dt": 0.05}}
-# The third-order system has a slow mode (time constant ~ 20 s with little control authority): longer runs.
+#: Longer runs for the third-order system: a slow mode (time constant near 20 s with little control authority).
 CLOSED_LOOP_SYSTEM = {"third_order": {"t_final": 80.0, "dt": 0.05}}
 
 
 def cases(quick: bool = False, only: list[str] | None = None) -> list[Case]:
+    """The cases to run.
+
+    * ``quick``: the same cases with short chains (one extension step), for CI.
+    * ``only``: case names; None: all. An unknown name is a KeyError that lists the known ones.
+    """
     selected = [c for c in CASES if only is None or c.name in only]
     if only is not None and len(selected) != len(set(only)):
         unknown = sorted(set(only) - {c.name for c in CASES})
         raise KeyError(f"unknown case(s) {unknown}; known: {[c.name for c in CASES]}")
     if not quick:
         return selected
-    # --quick: the same cases with short chains, for CI.
     return [
         Case(c.name, c.system, c.params, c.kind, c.first, None if c.to is None else c.first + c.step, c.step, c.paper)
         for c in selected

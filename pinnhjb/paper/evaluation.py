@@ -12,7 +12,13 @@ __all__ = ["reference_grid_residual", "true_errors", "closed_loop_metrics", "clo
 
 
 def reference_grid_residual(system, ref) -> float:
-    """E of the reference V_T(., 0) on its own grid: mean E_e^2 from its gradient (V(0) = 0 exactly)."""
+    """The horizon check E of the reference V_T(., 0) on its own grid: the mean of E_e^2 from its gradient.
+
+    V(0) = 0 exactly, so E has no boundary term. Points that did not converge are left out.
+
+    * ``system``: the control-affine system.
+    * ``ref``: a :class:`~pinnhjb.reference.ReferenceGrid`.
+    """
     x = torch.as_tensor(ref.points, dtype=torch.float64)
     g = torch.as_tensor(ref.gradient, dtype=torch.float64)
     ok = torch.as_tensor(ref.converged)
@@ -21,6 +27,14 @@ def reference_grid_residual(system, ref) -> float:
 
 
 def true_errors(system, solution, ref) -> dict:
+    """The errors of a solution's V(., 0) and mu(., 0) against a reference grid's V* and mu*.
+
+    * ``system``: the control-affine system.
+    * ``solution``: the learned solution.
+    * ``ref``: a :class:`~pinnhjb.reference.ReferenceGrid` of V*; points that did not converge are left out.
+
+    Returns a dict: ``value_max_error``, ``value_rmse``, ``policy_max_error``, ``policy_rmse``.
+    """
     ok = np.asarray(ref.converged)
     x = ref.points[ok]
     dv = solution.value(x) - ref.value[ok]
@@ -34,6 +48,16 @@ def true_errors(system, solution, ref) -> dict:
 
 
 def closed_loop_metrics(system, solution, x0: np.ndarray, v_star: np.ndarray, settings: dict) -> dict:
+    """The learned policy in closed loop: the fraction stabilized, and its cost against V* where it stabilized.
+
+    * ``system``: the control-affine system.
+    * ``solution``: the learned solution.
+    * ``x0``: (N, n) initial states.
+    * ``v_star``: (N,), V* at ``x0``.
+    * ``settings``: ``t_final`` and ``dt`` of the runs (:data:`~pinnhjb.paper.cases.CLOSED_LOOP`).
+
+    Returns a dict: ``fraction_stabilized``, ``suboptimality_mean``, ``suboptimality_max`` (J / V*).
+    """
     run = solution.closed_loop(x0, **settings)
     keep = (v_star > 1e-6) & run.stabilized  # a truncated cost of a run that did not settle says nothing
     ratio = run.cost[keep] / v_star[keep]
@@ -46,7 +70,12 @@ def closed_loop_metrics(system, solution, x0: np.ndarray, v_star: np.ndarray, se
 
 
 def closed_loop_states(system, ref_points: np.ndarray, per_dim: int) -> np.ndarray:
-    """A coarse sub-grid of the V* reference grid (every k-th point per axis)."""
+    """A coarse sub-grid of the V* reference grid, every k-th point per axis; returns the points' indices.
+
+    * ``system``: the control-affine system.
+    * ``ref_points``: the reference grid's points.
+    * ``per_dim``: about how many points per axis to keep.
+    """
     full = round(ref_points.shape[0] ** (1 / system.n))
     k = max(1, (full - 1) // (per_dim - 1))
     idx = np.arange(0, full, k)
@@ -56,7 +85,15 @@ def closed_loop_states(system, ref_points: np.ndarray, per_dim: int) -> np.ndarr
 
 
 def stage_rows(case, system, sol, refs, x0_idx, mode: str) -> list[dict]:
-    """Metrics per horizon of one trained solution."""
+    """The results table's rows of one trained solution, one per horizon.
+
+    * ``case``: the :class:`~pinnhjb.paper.cases.Case`.
+    * ``system``: its system.
+    * ``sol``: the trained solution.
+    * ``refs``: horizon -> :class:`~pinnhjb.reference.ReferenceGrid` (or None).
+    * ``x0_idx``: the closed loop's initial states, indices into the V* reference grid.
+    * ``mode``: ``"full"`` or ``"quick"``.
+    """
     rows = []
     views = [(INF, sol)] if case.kind == "steady" else [(h, sol.truncated(k + 1)) for k, h in enumerate(case.horizons)]
     for horizon, view in views:

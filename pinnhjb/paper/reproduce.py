@@ -2,10 +2,9 @@
 independent reference, closed-loop cost of the learned policies, spread over seeds.
 
 ``python -m pinnhjb reproduce [--quick] [--seeds N] [--out artifacts]`` trains every case of
-:data:`pinnhjb.paper.cases.CASES`, saves the checkpoints and the reference grids the notebooks load, and writes a
-results table (markdown, CSV and JSON, :mod:`pinnhjb.paper.tables`) with the paper's number beside ours.
-Reference grids (per-point Pontryagin solutions, :mod:`pinnhjb.reference`) do not depend on the seed and are
-reused when already present.
+:data:`pinnhjb.paper.cases.CASES`, saves the checkpoints and the reference grids the notebooks load, and writes
+the results tables (:mod:`pinnhjb.paper.tables`) with the paper's number beside ours. Reference grids do not
+depend on the seed and are reused when present.
 """
 
 from __future__ import annotations
@@ -57,8 +56,17 @@ def run(
     progress: bool = True,
     first_seed: int = 0,
 ) -> dict:
-    """Train and evaluate every case for seeds ``first_seed .. seeds - 1``; write checkpoints, references and
-    the results table (rows of seeds and cases not run are kept)."""
+    """Train and evaluate every case; write checkpoints, reference grids and the results tables.
+
+    * ``out``: the artifacts folder.
+    * ``seeds``: run the seeds ``first_seed .. seeds - 1``.
+    * ``quick``: short chains and coarse references, for CI.
+    * ``only``: case names; None: all.
+    * ``progress``: show progress bars.
+    * ``first_seed``: the first seed to run.
+
+    Returns the records, the summary and the metadata; rows of seeds and cases not run are kept.
+    """
     if (
         isinstance(seeds, bool)
         or not isinstance(seeds, int)

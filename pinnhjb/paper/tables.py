@@ -15,6 +15,7 @@ from .cases import CASES, INF
 
 __all__ = ["METRICS", "merge_records", "aggregate", "write_tables", "rewrite_tables", "reference_wall_time"]
 
+#: The metrics the tables aggregate over seeds.
 METRICS = [
     "E",
     "E_reference_VT",
@@ -29,8 +30,12 @@ METRICS = [
 
 
 def rewrite_tables(out: Path = DEFAULT_OUT) -> dict:
-    """Rebuild the markdown/CSV/JSON tables from the stored records (no training): after a change to the
-    table layout, or to restate the measured wall times from the records and reference grids."""
+    """Rebuild the tables from the stored records, without training.
+
+    For a change of the tables' layout, or to restate the wall times from the records and reference grids.
+
+    * ``out``: the artifacts folder.
+    """
     payload = load_results(out)
     records = payload["records"]
     meta = dict(
@@ -44,7 +49,11 @@ def rewrite_tables(out: Path = DEFAULT_OUT) -> dict:
 
 
 def merge_records(out: Path, records: list[dict]) -> list[dict]:
-    """Keep earlier results of cases and seeds not rerun now (a partial rerun updates its own rows only)."""
+    """The new records with the stored ones of cases and seeds not rerun (a partial rerun updates its own rows).
+
+    * ``out``: the artifacts folder.
+    * ``records``: the new per-seed records.
+    """
     path = Path(out) / "results" / "reproduce.json"
     if not path.exists():
         return records
@@ -55,7 +64,7 @@ def merge_records(out: Path, records: list[dict]) -> list[dict]:
 
 
 def aggregate(records: list[dict]) -> list[dict]:
-    """Mean, standard deviation, min and max over seeds of every metric, per case and horizon."""
+    """Mean, standard deviation, min and max over seeds of every metric, per case and horizon, of ``records``."""
     groups: dict[tuple, list[dict]] = {}
     paper: dict[str, dict] = {}
     for r in records:
@@ -100,7 +109,7 @@ def _reference_validation(out: Path) -> str:
 
 
 def reference_wall_time(out: Path) -> float:
-    """Seconds spent computing the stored reference grids (each records its own wall time)."""
+    """Seconds spent computing the reference grids stored under ``out`` (each records its own wall time)."""
     from ..reference import ReferenceGrid
 
     return float(sum(ReferenceGrid.load(p).wall_time for p in (Path(out) / "reference").glob("*.npz")))
@@ -114,6 +123,13 @@ def _pm(stat: dict | None, spec: str = ".2e") -> str:
 
 
 def write_tables(out: Path, records, summary, meta):
+    """Write ``<out>/results/reproduce.json``, ``.csv`` and ``.md``.
+
+    * ``out``: the artifacts folder.
+    * ``records``: per-seed records.
+    * ``summary``: the :func:`aggregate` of them.
+    * ``meta``: versions, mode, wall times.
+    """
     res = out / "results"
     res.mkdir(parents=True, exist_ok=True)
     payload = {"meta": meta, "summary": summary, "records": records}
@@ -134,7 +150,7 @@ def write_tables(out: Path, records, summary, meta):
         f"evaluating all cases and seeds (sum over the runs that produced the rows) + "
         f"{meta['reference_wall_time']:.0f} s computing the reference grids. {_reference_validation(out)}",
         "",
-        "E: eq. (IHJB_res) on the evaluation grid over Omega (mean ± std over seeds). E(ref V_T): the same "
+        "E: the horizon check eq-e on the evaluation grid over Omega (mean ± std over seeds). E(ref V_T): the same "
         "residual of the independent reference V_T (the part of E due to the horizon). Errors are against "
         "the known V* (quartic) or the reference V* (pendulum, third-order). Suboptimality: J(mu_hat; x0) / "
         "V*(x0) in closed loop over the initial states it stabilised (|x(t_final)| < 1e-3); stabilised: their "

@@ -1,20 +1,18 @@
 """Theorem 3 on a trained model: a known error injected into the terminal cost of one extension stage.
 
-On the quartic system V* is known and is a fixed point of the extension: with terminal cost V_T = V* the exact
-extended value is V_{T'}(., t) = V* for every T' - T, and its optimal policy is mu* at every t. So if one
-extension stage of length ``delta = T' - T`` is trained with the *perturbed* terminal cost
-``V_hat_T = V* + e`` (``e`` a known function), the paper's Theorem 3 bounds the result point by point:
+On the quartic system V* is known and is a fixed point of the extension: with terminal cost V* the exact
+extended value is V* again, with policy mu*. One extension stage of length ``delta = T' - T`` trained with the
+perturbed terminal cost ``V* + e`` (``e`` a known function) is then bounded point by point by the error bound
+:eq:`eq-error-bound`::
 
-    |V_hat_T'(x0, 0) - V*(x0)| <= max{ |e(x_T'(delta))|, |e(x_hat_T'(delta))| },
+    abs(V_hat_T'(x0, 0) - V*(x0)) <= max(abs(e(x_T'(delta))), abs(e(x_hat_T'(delta)))),
 
-where ``x_T'`` follows mu* and ``x_hat_T'`` the stage's own (time-varying) learned policy
-mu_hat(x, t) = -1/2 R^{-1} g' grad_x v_hat(x, t). A trained stage also has its own network error; the stage
-trained with ``e = 0`` (terminal cost V* itself) measures it.
+where ``x_T'`` follows mu* and ``x_hat_T'`` the stage's own time-varying learned policy. A trained stage also
+has its own network error; the stage trained with ``e = 0`` measures it.
 
-``python -m pinnhjb.paper.theorem3 [--out artifacts/theorem3]`` trains the three stages of :data:`ERRORS` (seeded,
-fixed step counts, about 20 s each on two CPU cores) and stores them with :func:`pinnhjb.storage.save`.
-The terminal cost V* + e is code, so the checkpoint stores it by name and :func:`load` passes the same
-function back (``pinnhjb.load`` refuses such a checkpoint without it).
+``python -m pinnhjb.paper.theorem3 [--out artifacts/theorem3]`` trains the stages of :data:`ERRORS` (seeded,
+fixed step counts, about 20 s each on two CPU cores) and stores them; the terminal cost is code, so a
+checkpoint stores it by name and :func:`load` passes the same function back.
 """
 
 from __future__ import annotations
@@ -57,30 +55,44 @@ __all__ = [
 Tensor = torch.Tensor
 
 #: The injected terminal errors e(x): none (the control), one with e(0) = 0, the same plus a constant.
+#:
+#: :meta hide-value:
 ERRORS: dict[str, Callable[[Tensor], Tensor]] = {
     "none": lambda x: torch.zeros(x.shape[0], dtype=x.dtype, device=x.device),
     "vanishing": lambda x: 0.3 * (x[:, 0] ** 2 - x[:, 1] ** 2),
     "offset": lambda x: 0.3 * (x[:, 0] ** 2 - x[:, 1] ** 2) + 0.2,
 }
+#: Each error's formula, as the checkpoints name it.
 FORMULAS = {"none": "e(x) = 0", "vanishing": "e(x) = 0.3 (x1^2 - x2^2)", "offset": "e(x) = 0.3 (x1^2 - x2^2) + 0.2"}
-DELTA = 1.0  # the extension T' - T
+#: The extension's length T' - T.
+DELTA = 1.0
+#: The training seed.
 SEED = 0
 DEFAULT_DIR = Path("artifacts") / "theorem3"
 
 
 def config() -> TrainConfig:
-    """One stage of the default recipe (seeded, no wall-clock stop), evaluated on a 41 x 41 grid."""
+    """The recipe: one stage of the default recipe (seeded, no wall-clock stop), evaluated on a 41 x 41 grid."""
     return TrainConfig.preset("default", eval_points_per_dim=41)
 
 
 def terminal_cost(error: str) -> CallableTerminalCost:
-    """phi = V* + e: the exact V_T (= V*, a fixed point of the extension) carrying the error ``e``."""
+    """The terminal cost ``phi = V* + e``: the exact V_T (V*, a fixed point of the extension) with an error.
+
+    * ``error``: a key of :data:`ERRORS`.
+    """
     system, e = quartic(), ERRORS[error]
     return CallableTerminalCost(lambda x: system.value_star(x) + e(x), name=f"V*(x) + {FORMULAS[error]}")
 
 
 def train(error: str, seed: int = SEED, delta: float = DELTA, progress: bool = False) -> FiniteHorizonSolution:
-    """Train one extension stage of length ``delta`` with terminal cost V* + e (on the CPU, in the default recipe)."""
+    """Train one extension stage with terminal cost V* + e, on the CPU, in the recipe of :func:`config`.
+
+    * ``error``: a key of :data:`ERRORS`.
+    * ``seed``: the training seed.
+    * ``delta``: the stage's length.
+    * ``progress``: show a progress bar.
+    """
     if error not in ERRORS:
         raise KeyError(f"unknown error {error!r}; choose one of {sorted(ERRORS)}")
     solver = FiniteHorizonSolver(quartic(), config=config(), seed=seed, device="cpu", progress=progress)
@@ -88,13 +100,20 @@ def train(error: str, seed: int = SEED, delta: float = DELTA, progress: bool = F
 
 
 def path(error: str, out: Path | None = None) -> Path:
+    """The checkpoint of an error's stage: ``<out>/quartic_<error>.pt``; ``out`` None: the artifacts' theorem3."""
     if out is None:
         out = artifacts_dir() / "theorem3"
     return Path(out) / f"quartic_{error}.pt"
 
 
 def save(sol: FiniteHorizonSolution, error: str, out: Path | None = None, **extra) -> Path:
-    """Store the stage's networks and metrics; the terminal cost V* + e is stored by name (see :func:`load`)."""
+    """Store a stage's networks and metrics; the terminal cost V* + e is stored by name (see :func:`load`).
+
+    * ``sol``: the trained stage.
+    * ``error``: its key of :data:`ERRORS`.
+    * ``out``: the folder, as in :func:`path`.
+    * ``extra``: added to the provenance record.
+    """
     return _save(
         sol,
         path(error, out),
@@ -108,21 +127,37 @@ def save(sol: FiniteHorizonSolution, error: str, out: Path | None = None, **extr
 
 
 def load(error: str, out: Path | None = None) -> FiniteHorizonSolution:
-    """A stored stage with its terminal cost V* + e re-attached."""
+    """A stored stage with its terminal cost V* + e re-attached; ``error`` and ``out`` as in :func:`path`."""
     return _load(path(error, out), device="cpu", terminal_cost=terminal_cost(error))
 
 
 def rollout(system, policy: Callable[[Tensor, float], Tensor], x0, t_final: float, dt: float = 0.01) -> np.ndarray:
-    """x(t_final) under a time-varying policy u = policy(x, t) (:func:`pinnhjb.metrics.closed_loop`); (N, n)."""
+    """The end states (N, n) at ``t_final`` under a time-varying policy, by :func:`pinnhjb.metrics.closed_loop`.
+
+    * ``system``: the control-affine system.
+    * ``policy``: ``(x, t) -> u``.
+    * ``x0``: (N, n) initial states.
+    * ``t_final``: the end time.
+    * ``dt``: the RK4 step.
+    """
     return closed_loop(system, policy, x0, t_final=t_final, dt=dt, time_varying=True).x[-1]
 
 
 def bound_check(sol: FiniteHorizonSolution, error: str, points_per_dim: int = 21, dt: float = 0.01) -> dict:
-    """Both sides of Theorem 3 on a grid over Omega for a stage trained with terminal cost V* + e.
+    """Both sides of the error bound :eq:`eq-error-bound` on a grid over Omega, for a stage trained with V* + e.
 
-    Returns arrays over the grid: ``x0``; ``error`` = |V_hat_T'(x0, 0) - V*(x0)| (V_T' = V* exactly);
-    ``bound`` = max{|e(x_T'(delta))|, |e(x_hat_T'(delta))|} with x_T' under mu* and x_hat_T' under the stage's
-    learned policy mu_hat(., t); ``e_start`` = |e(x0)| (the error before the extension).
+    * ``sol``: the trained stage.
+    * ``error``: its key of :data:`ERRORS`.
+    * ``points_per_dim``: grid points along each axis.
+    * ``dt``: the RK4 step of the closed loops.
+
+    Returns a dict of arrays over the grid:
+
+    * ``x0``: the grid.
+    * ``error``: ``abs(V_hat_T'(x0, 0) - V*(x0))`` (the exact V_T' is V*).
+    * ``bound``: ``max(abs(e(x_T'(delta))), abs(e(x_hat_T'(delta))))``, with x_T' under mu* and x_hat_T' under
+      the stage's learned policy.
+    * ``e_start``: ``abs(e(x0))``, the error before the extension.
     """
     system, e = sol.system, ERRORS[error]
     x0 = system.grid(points_per_dim).numpy()
@@ -137,8 +172,14 @@ def bound_check(sol: FiniteHorizonSolution, error: str, points_per_dim: int = 21
 
 
 def summary(check: dict, network_error: float) -> dict:
-    """Scalars of a :func:`bound_check`: max error, max bound, max |e| before the extension, the fraction of
-    points where the bound alone holds, and whether bound + ``network_error`` holds everywhere."""
+    """Scalars of a :func:`bound_check`.
+
+    * ``check``: the result of :func:`bound_check`.
+    * ``network_error``: the stage's own network error (the largest error of the ``e = 0`` stage).
+
+    Returns a dict: the largest error, the largest bound, the largest ``abs(e)`` before the extension, the
+    fraction of points where the bound alone holds, and whether bound + ``network_error`` holds everywhere.
+    """
     err, bound = check["error"], check["bound"]
     return {
         "max_error": float(err.max()),
@@ -150,10 +191,18 @@ def summary(check: dict, network_error: float) -> dict:
 
 
 def exact_stage(error: str, points_per_dim: int = 21, delta: float = DELTA, tol: float = 1e-8) -> dict:
-    """The exact perturbed extension on the grid, independent of any network: per-point Pontryagin BVPs
-    (:func:`pinnhjb.reference.solve_point`) with terminal cost V* + e. Returns ``x0``, ``value`` (the exact
-    V_hat_T'(x0, 0)), ``end`` (x_hat_T'(delta) on the exact perturbed optimal trajectory), ``end_opt``
-    (x_T'(delta) under mu*) and ``converged``."""
+    """The exact perturbed extension on the grid, independent of any network.
+
+    Per-point Pontryagin BVPs (:func:`pinnhjb.reference.solve_point`) with terminal cost V* + e.
+
+    * ``error``: a key of :data:`ERRORS`.
+    * ``points_per_dim``: grid points along each axis.
+    * ``delta``: the stage's length.
+    * ``tol``: the BVP tolerance.
+
+    Returns a dict of arrays: ``x0``; ``value``, the exact V_hat_T'(x0, 0); ``end``, x_hat_T'(delta) on the
+    exact perturbed optimal trajectory; ``end_opt``, x_T'(delta) under mu*; ``converged``.
+    """
     import warnings
 
     from ..reference import solve_point
@@ -179,11 +228,12 @@ def exact_stage(error: str, points_per_dim: int = 21, delta: float = DELTA, tol:
 
 
 def exact_path(error: str, out: Path | None = None) -> Path:
+    """Where :func:`exact_stage`'s arrays are stored; arguments as in :func:`path`."""
     return path(error, out).with_name(f"quartic_{error}_exact.npz")
 
 
 def load_exact(error: str, out: Path | None = None) -> dict:
-    """The stored :func:`exact_stage` arrays."""
+    """The stored :func:`exact_stage` arrays; arguments as in :func:`path`."""
     with np.load(exact_path(error, out)) as data:
         return {k: data[k] for k in data.files}
 
