@@ -184,7 +184,7 @@ def _check_system(ckpt: dict, system, path=None):
             raise CheckpointError(f"checkpoint was trained on user system '{spec['name']}': pass system= to load()")
         params = dict(spec.get("params") or {})
         if spec["builder"] == "lq" and stored_fp is None and params.get("train_domain", 0) is None:
-            params["train_domain"] = params.get("domain")  # stored before lq's default training box was enlarged
+            params["train_domain"] = params.get("domain")  # no fingerprint, train_domain None: it trained on Omega
         try:
             system = get_system(spec["builder"], **params)
         except Exception as exc:  # noqa: BLE001 - re-raised with context
