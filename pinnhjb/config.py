@@ -61,8 +61,8 @@ class TrainConfig:
 
     * ``width``, ``depth``: the MLP's hidden width and number of hidden layers.
     * ``activation``: its activation, a name in :data:`pinnhjb.pinn.ACTIVATIONS`.
-    * ``ansatz``: enforce v(x, T) = phi(x) and v(0, t) = 0 exactly (eq-ansatz); False: they are the soft terms
-      MSE_b and MSE_in of eq-mse.
+    * ``ansatz``: enforce v(x, T) = phi(x) and v(0, t) = 0 exactly (:class:`~pinnhjb.pinn.FiniteHorizonValue`);
+      False: they are the soft terms MSE_b and MSE_in of the loss :eq:`eq-mse`.
     * ``dtype``: ``"float32"`` or ``"float64"``.
 
     Data:

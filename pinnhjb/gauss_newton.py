@@ -71,7 +71,7 @@ class FlatParameters:
                 p.copy_(chunk.view(p.shape))
 
     def unflatten(self, theta: Tensor, prefix: str = "") -> dict:
-        """``theta`` as a parameter dict for :func:`torch.func.functional_call` (names under ``prefix``)."""
+        """``theta`` as a parameter dict for ``torch.func.functional_call`` (names under ``prefix``)."""
         return {prefix + k: c.view(s) for k, s, c in zip(self.names, self.shapes, torch.split(theta, self.sizes))}
 
 
@@ -111,7 +111,7 @@ def levenberg_marquardt(
     desc: str = "LM",
     jacobian: Callable[..., tuple[Tensor, Tensor]] | None = None,
 ) -> LMResult:
-    """Minimise mean_i point_residual(theta, *batch_i)^2 over fresh batches from ``sample(points)``.
+    """Minimise ``mean_i point_residual(theta, *batch_i)^2`` over fresh batches from ``sample(points)``.
 
     * ``theta``: the starting weights, one flat vector.
     * ``point_residual``: ``(theta, *args) ->`` one point's residual (a scalar), ``args`` the point's data.

@@ -2,7 +2,7 @@
 
 A phase (:class:`Adam`, :class:`LBFGS`, :class:`LevenbergMarquardt`) holds its settings and runs itself on an
 :class:`Objective`, the loss of one stage built by :mod:`pinnhjb.training`. A new optimiser is one class with a
-``name`` and a ``run`` method, registered with :func:`register`; :attr:`pinnhjb.config.TrainConfig.phases` takes it
+``name`` and a ``run`` method, registered with :func:`register`; ``TrainConfig.phases`` takes it
 like the built-in ones, and checkpoints store it by its name.
 """
 
@@ -82,7 +82,7 @@ class Objective:
     """What a phase minimises: one stage's loss and its samplers, built by :mod:`pinnhjb.training`.
 
     * ``params``: the network's parameters, optimised in place.
-    * ``loss``: a batch -> the scalar training loss (eq-mse; MSE_e alone under the ansatz).
+    * ``loss``: a batch -> the scalar training loss :eq:`eq-mse` (MSE_e alone under the ansatz).
     * ``sample``: a number of points -> a batch of fresh collocation points.
     * ``epochs``: () -> the mini-batches of one epoch over the fixed data set (``sampling="fixed"``), else None.
     * ``sampling``: ``"resample"`` or ``"fixed"``, from the config.
@@ -323,7 +323,7 @@ class Adam(Phase):
 class LBFGS(Phase):
     """L-BFGS with a strong-Wolfe line search on one fixed set of fresh flow points.
 
-    * ``steps``: the iterations (``max_iter`` of :class:`torch.optim.LBFGS`).
+    * ``steps``: the iterations (``max_iter`` of ``torch.optim.LBFGS``).
     * ``points``: the flow points, drawn once.
 
     A line search that ends on a non-finite loss restores the weights from before the phase and warns.

@@ -2,16 +2,16 @@
 
 >>> import pinnhjb as ph
 >>> solver = ph.FiniteHorizonSolver(ph.systems.pendulum(), config="default", seed=0)
->>> sol = solver.solve(horizon=1.0)                    # Algorithm 1: V_1 on Omega x [0, 1]
->>> sol = solver.extend(sol, to=4.0, step=1.0)          # Theorem 2: three more stages, each on [0, 1]
->>> sol = solver.solve_until(tol=1e-4, step=1.0)        # extend until E <= tol (Section 5.1)
+>>> sol = solver.solve(horizon=1.0)  # Algorithm 1: V_1 on Omega x [0, 1]
+>>> sol = solver.extend(sol, to=4.0, step=1.0)  # Theorem 2: three more stages
+>>> sol = solver.solve_until(tol=1e-4, step=1.0)  # until E <= tol (Section 5.1)
 
 Arguments are checked before any training starts (an error names the argument, the value and what is
 expected). Nothing trained is lost: when a later stage fails (e.g. :class:`~pinnhjb.gauss_newton.DivergenceError`),
 the exception carries the stages completed before it as ``exc.partial_solution`` (say so in its notes), and
 ``callback`` has already seen each of them. A stage whose E is no better than that of V = 0 warns.
 
-Each result's metrics are computed once, when the solver builds it, by :meth:`FiniteHorizonSolver.evaluate`: by
+Each result's metrics are computed once, when the solver builds it, by ``FiniteHorizonSolver.evaluate``: by
 default E and the errors against V* on ``config.eval_points_per_dim`` points per axis
 (:meth:`~pinnhjb.solution.FiniteHorizonSolution.evaluate`); the ``evaluate=`` argument replaces that with any
 function of the result (e.g. a benchmark's own timed measure on its own points, or ``lambda sol: {}`` to skip it).
@@ -199,12 +199,13 @@ class FiniteHorizonSolver(_Solver):
     """Finite-horizon PINN (Algorithm 1) with horizon extension (Theorem 2).
 
     * ``system``: the :class:`~pinnhjb.systems.ControlAffineSystem` to solve.
-    * ``config``: a :class:`TrainConfig`, a preset name (``"default"``, ``"paper"``, ``"quick"``, ...) or a dict.
+    * ``config``: a :class:`~pinnhjb.config.TrainConfig`, a preset name (``"default"``, ``"paper"``, ``"quick"``,
+      ...) or a dict.
     * ``seed``: for initialisation and sampling (stage k uses seed + k).
     * ``device``: None for CUDA when present, else CPU.
     * ``progress``: show progress bars.
     * ``evaluate``: the metrics of each new stage, a callable (the chain ending with it) -> dict; None for
-      E and the errors on ``config.eval_points_per_dim`` points per axis (see :meth:`evaluate`).
+      E and the errors on ``config.eval_points_per_dim`` points per axis (see ``evaluate``).
     """
 
     def _train_stage(self, length: float, start: float, terminal, init: FiniteHorizonValue | None, index: int) -> Stage:
@@ -245,7 +246,7 @@ class FiniteHorizonSolver(_Solver):
         return sol
 
     def solve(self, horizon: float, terminal_cost=None) -> FiniteHorizonSolution:
-        """Algorithm 1: train v_T on Omega x [0, horizon] (eq-hjbt); a chain of one stage.
+        """Algorithm 1: train v_T on Omega x [0, horizon] :eq:`eq-hjbt`; a chain of one stage.
 
         * ``horizon``: T.
         * ``terminal_cost``: phi; None (zero), an (n, n) matrix P (x'Px), a torch callable or a terminal-cost module.
@@ -262,7 +263,7 @@ class FiniteHorizonSolver(_Solver):
         step: float | None = None,
         callback: Callable[[FiniteHorizonSolution], None] | None = None,
     ) -> FiniteHorizonSolution:
-        """Theorem 2: extend ``solution`` from its horizon T to ``to`` (eq-hjbinc); the longer chain.
+        """Theorem 2: extend ``solution`` from its horizon T to ``to`` :eq:`eq-hjbinc`; the longer chain.
 
         * ``solution``: the chain to extend (not changed).
         * ``to``: the new horizon, above T.
@@ -328,7 +329,7 @@ class FiniteHorizonSolver(_Solver):
         terminal_cost=None,
         callback=None,
     ) -> FiniteHorizonSolution:
-        """Solve, then extend one stage at a time until the horizon check E (eq-e) is at most ``tol``.
+        """Solve, then extend one stage at a time until the horizon check E :eq:`eq-e` is at most ``tol``.
 
         * ``tol``: the target for E.
         * ``step``: the length of each stage.
@@ -339,7 +340,7 @@ class FiniteHorizonSolver(_Solver):
 
         The per-stage report is ``solution.summary()``; ``solution.converged`` says whether E met ``tol``.
 
-        Choosing ``tol``: E (eq-e) is the mean square of the steady-state HJB residual over a grid on
+        Choosing ``tol``: E :eq:`eq-e` is the mean square of the steady-state HJB residual over a grid on
         Omega (``config.eval_points_per_dim`` points per axis; a seeded Monte Carlo sample in high dimension,
         see :mod:`pinnhjb.metrics`), in the units of Q squared. Judge it against ``E_zero`` (E of V = 0 on the same
         points, in every row of ``summary()``): a ``tol`` of 1e-4 to 1e-6 times ``E_zero`` asks for a residual
@@ -378,7 +379,7 @@ class FiniteHorizonSolver(_Solver):
 
 
 class SteadyStateSolver(_Solver):
-    """The direct steady-state PINN on the steady-state HJB (eq-hjb) with V(0) = 0 (the paper's T = infinity
+    """The direct steady-state PINN on the steady-state HJB :eq:`eq-hjb` with V(0) = 0 (the paper's T = infinity
     baseline), trained with the same network, data and optimiser budget as one finite-horizon stage.
 
     Arguments as for :class:`FiniteHorizonSolver` (``evaluate`` computes the solution's metrics).

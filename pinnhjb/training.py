@@ -1,12 +1,13 @@
 """Training one stage: the finite-horizon PINN of Algorithm 1 and the direct steady-state baseline.
 
-The loss is the paper's eq-mse: MSE_e (flow residual F_e, eq-fe) + MSE_b (terminal residual F_b, eq-fb) + MSE_in
-(origin residual F_in, eq-fin); under the ansatz of :class:`~pinnhjb.pinn.FiniteHorizonValue` the last two are
-zero by construction and only MSE_e is minimised. This module builds a stage's loss and samplers (an
-:class:`~pinnhjb.optimizers.Objective`) and runs the config's optimiser phases on it (:mod:`pinnhjb.optimizers`);
-the residuals and their Jacobians are the objects of :mod:`pinnhjb.residuals`. f, g, Q and the terminal cost phi
-(with its gradient) are evaluated once per stage on a pool of states and then indexed, so a frozen chain of
-previous stages costs nothing per step.
+The loss is the paper's :eq:`eq-mse`: MSE_e (flow residual F_e, :eq:`eq-fe`) + MSE_b (terminal residual F_b,
+:eq:`eq-fb`) + MSE_in (origin residual F_in, :eq:`eq-fin`). Under the ansatz of
+:class:`~pinnhjb.pinn.FiniteHorizonValue` the last two are zero by construction and only MSE_e is minimised.
+
+This module builds a stage's loss and samplers (an :class:`~pinnhjb.optimizers.Objective`) and runs the config's
+optimiser phases on it (:mod:`pinnhjb.optimizers`); the residuals and their Jacobians are the objects of
+:mod:`pinnhjb.residuals`. f, g, Q and the terminal cost phi (with its gradient) are evaluated once per stage on a
+pool of states and then indexed, so a frozen chain of previous stages costs nothing per step.
 """
 
 from __future__ import annotations
@@ -211,7 +212,7 @@ def shared_times(gen, size: int, points_per_time: int, T: float, dtype, device) 
     * ``T``: the horizon.
     * ``dtype``, ``device``: of the result.
 
-    Returns (t, (times, index)) with t = times[index].
+    Returns ``(t, (times, index))`` with ``t = times[index]``.
     """
     k = -(-size // points_per_time)
     times = _uniform(gen, k, T, dtype, device)
@@ -239,7 +240,7 @@ def train_finite_horizon(
     desc: str = "stage",
     residual: str | type[Residual] | None = None,
 ) -> TrainHistory:
-    """Train ``model`` in place on the finite-horizon HJB (eq-hjbt) over Omega x [0, model.horizon] (Algorithm 1).
+    """Train ``model`` in place on the finite-horizon HJB :eq:`eq-hjbt` over Omega x [0, model.horizon] (Algorithm 1).
 
     * ``system``: the control-affine system.
     * ``model``: the stage's value network, trained in place.
@@ -325,7 +326,7 @@ def train_steady_state(
     desc: str = "steady state",
     residual: str | type[Residual] | None = None,
 ) -> TrainHistory:
-    """Train ``model`` in place on the steady-state HJB (eq-hjb) directly (the paper's T = infinity baseline).
+    """Train ``model`` in place on the steady-state HJB :eq:`eq-hjb` directly (the paper's T = infinity baseline).
 
     * ``system``: the control-affine system.
     * ``model``: the value network V(x), trained in place.

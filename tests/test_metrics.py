@@ -1,4 +1,5 @@
-"""Metrics: E of eq. (IHJB_res), errors against V*/mu*, and the closed loop (cost of a policy by RK4)."""
+"""pinnhjb.metrics: the horizon check E (eq-e), errors against V* and mu*, and the closed loop (cost of a policy
+by RK4)."""
 
 from __future__ import annotations
 

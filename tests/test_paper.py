@@ -63,6 +63,15 @@ def test_references_are_reused(quick_run):
 def test_unknown_case_is_rejected():
     with pytest.raises(KeyError, match="unknown case"):
         paper.cases(only=["nope"])
+    known = paper.cases()[0].name
+    for load in (
+        lambda: paper.stage_metric("nope", "E"),
+        lambda: paper.reference_residual("nope", 1.0),
+        lambda: paper.load_reference("nope"),
+        lambda: paper.load_case("nope"),
+    ):
+        with pytest.raises(KeyError, match=rf"unknown case 'nope'.*{known}"):
+            load()
 
 
 def test_every_case_has_a_committed_checkpoint():
