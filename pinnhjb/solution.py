@@ -50,6 +50,12 @@ class _ValueSolution:
     def _models(self):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def _time(self, t: float, horizon: float | None) -> float:
+        """The time at which to evaluate: ``t``, or the time that gives the value of horizon ``horizon``."""
+        if horizon is not None:
+            raise TypeError(f"{type(self).__name__} has no horizon: evaluate it without horizon=")
+        return t
+
     def _value_fn(self, t: float = 0.0):
         def fn(x: Tensor) -> Tensor:
             return self._model_value(x.to(self.device, self.dtype), t).to(x.device, x.dtype)
@@ -61,30 +67,39 @@ class _ValueSolution:
         xt = torch.as_tensor(np.asarray(x, dtype=float)) if is_numpy else x
         return self.system.check_states(xt), is_numpy
 
-    def value(self, x, t: float = 0.0):
+    def value(self, x, t: float = 0.0, horizon: float | None = None):
         """The value V(x, t).
 
         * ``x``: (N, n) states; numpy in gives numpy out, a tensor gives a (detached) tensor.
         * ``t``: the time, in [0, horizon].
+        * ``horizon``: instead of ``t``, a horizon tau in [0, T]: the value V_tau(x, 0) of the problem over
+          horizon tau with the same terminal cost, which is V_T(x, T - tau) for a time-invariant system (a
+          finite-horizon solution only).
 
         Returns (N,).
         """
+        t = self._time(t, horizon)
         xt, is_numpy = self._prepare(x)
         with torch.no_grad():
             v = self._value_fn(t)(xt)
         return v.numpy() if is_numpy else v
 
-    def gradient(self, x, t: float = 0.0):
-        """The gradient grad_x V(x, t), by autograd; ``x`` and ``t`` as in :meth:`value`. Returns (N, n)."""
+    def gradient(self, x, t: float = 0.0, horizon: float | None = None):
+        """The gradient grad_x V(x, t), by autograd; ``x``, ``t`` and ``horizon`` as in :meth:`value`.
+
+        Returns (N, n).
+        """
+        t = self._time(t, horizon)
         xt, is_numpy = self._prepare(x)
         _, g = gradient(self._value_fn(t), xt)
         return g.numpy() if is_numpy else g
 
-    def policy(self, x, t: float = 0.0):
+    def policy(self, x, t: float = 0.0, horizon: float | None = None):
         """The policy ``mu(x, t) = -1/2 R^{-1} g(x)' grad_x V(x, t)``: :eq:`eq-muhat`.
 
-        ``x`` and ``t`` as in :meth:`value`. Returns (N, m).
+        ``x``, ``t`` and ``horizon`` as in :meth:`value`. Returns (N, m).
         """
+        t = self._time(t, horizon)
         xt, is_numpy = self._prepare(x)
         _, g = gradient(self._value_fn(t), xt)
         u = self.system.policy_from_gradient(xt, g).detach()
@@ -187,6 +202,22 @@ class FiniteHorizonSolution(_ValueSolution):
 
     def _models(self):
         return [s.model for s in self.stages]
+
+    def _time(self, t: float, horizon: float | None) -> float:
+        if horizon is None:
+            return t
+        if isinstance(t, (int, float)) and t != 0.0:
+            raise ValueError(f"give t or horizon, not both; got t={t}, horizon={horizon}")
+        try:
+            tau = float(horizon)
+        except (TypeError, ValueError):
+            raise TypeError(f"horizon must be a number; got {horizon!r}") from None
+        if not 0.0 <= tau <= self.horizon + 1e-12:
+            raise ValueError(
+                f"horizon must lie in [0, {self.horizon:g}] (the chain's horizon T: V_tau(x, 0) = V_T(x, T - tau)); "
+                f"got {horizon}"
+            )
+        return max(self.horizon - tau, 0.0)
 
     @property
     def converged(self) -> bool | None:

@@ -150,3 +150,48 @@ def test_loaded_solution_carries_its_provenance_and_stored_metrics(pendulum, tmp
     derived = dataclasses.replace(loaded, tol=2.0)
     assert derived.converged is True and loaded.tol is None and derived.stages == loaded.stages
     np.testing.assert_array_equal(derived.value(np.zeros((1, 2))), loaded.value(np.zeros((1, 2))))
+
+
+# ------------------------------------------------------------------------------ every horizon from one chain
+LQ = dict(A=np.array([[0.0, 1.0], [-1.0, -0.5]]), B=np.array([[0.0], [1.0]]), Q=np.eye(2), R=np.array([[1.0]]))
+
+
+@pytest.fixture(scope="module")
+def lq_chain():
+    """An LQ system's chain to T = 2 (two Levenberg-Marquardt stages on a 2 x 16 network, a few seconds)."""
+    system = ph.systems.linear_quadratic(**LQ, domain=[[-1, 1], [-1, 1]])
+    cfg = ph.TrainConfig.preset("default", width=16, depth=2, eval_points_per_dim=11).with_phase("lm", steps=100)
+    solver = ph.FiniteHorizonSolver(system, cfg, seed=0, device="cpu", progress=False)
+    return solver.extend(solver.solve(1.0), to=2.0)
+
+
+def test_one_chain_gives_every_shorter_horizon_of_the_exact_lq_value(lq_chain):
+    """V_tau(x, 0) = V_T(x, T - tau) for a time-invariant system: 40 horizons in (0, 2] from one chain, each
+    against the exact Riccati value and policy (pinnhjb.lq.riccati_ode)."""
+    x = lq_chain.system.grid(11).numpy()
+    for tau in np.linspace(0.05, 2.0, 40):
+        exact = ph.lq.riccati_ode(LQ["A"], LQ["B"], LQ["Q"], LQ["R"], tau)
+        v_exact = exact.value(x, 0.0)
+        assert np.abs(lq_chain.value(x, horizon=tau) - v_exact).max() <= 2e-3 * np.abs(v_exact).max(), tau
+        assert np.abs(lq_chain.policy(x, horizon=tau) - exact.policy(x, 0.0)).max() <= 5e-3, tau
+        # the horizon is the time T - tau of the chain, and nothing else
+        np.testing.assert_array_equal(lq_chain.value(x, horizon=tau), lq_chain.value(x, t=2.0 - tau))
+        np.testing.assert_array_equal(lq_chain.gradient(x, horizon=tau), lq_chain.gradient(x, t=2.0 - tau))
+    # horizon T is the chain's own V_T(., 0); horizon 0 is the terminal cost (here 0)
+    np.testing.assert_array_equal(lq_chain.value(x, horizon=2.0), lq_chain.value(x))
+    assert np.abs(lq_chain.value(x, horizon=0.0)).max() < 1e-12
+
+
+def test_a_horizon_outside_the_chain_or_beside_t_is_refused(lq_chain, pendulum):
+    x = np.zeros((1, 2))
+    with pytest.raises(ValueError, match=r"horizon must lie in \[0, 2\]"):
+        lq_chain.value(x, horizon=2.5)
+    with pytest.raises(ValueError, match=r"horizon must lie in \[0, 2\]"):
+        lq_chain.policy(x, horizon=-0.1)
+    with pytest.raises(ValueError, match="give t or horizon, not both"):
+        lq_chain.value(x, t=0.5, horizon=1.0)
+    with pytest.raises(TypeError, match="horizon must be a number"):
+        lq_chain.gradient(x, horizon="long")
+    steady = ph.SteadyStateSolver(pendulum, config(), seed=0, device="cpu", progress=False).solve()
+    with pytest.raises(TypeError, match="SteadyStateSolution has no horizon"):
+        steady.value(x, horizon=1.0)
