@@ -1,7 +1,8 @@
 """Explorers over the horizon T or the weight R: one set of precomputed frames, two renderings.
 
 :func:`explorer` draws a figure for every value once and returns a :class:`FrameExplorer`. In a live Jupyter
-kernel it is an ipywidgets slider that swaps the precomputed images; on the static site, where no kernel runs,
+kernel it is an ipywidgets slider that swaps the precomputed images (or, with ``live=True``, a continuous slider
+that draws any value of the range on the fly); on the static site, where no kernel runs,
 the same output carries a self-contained HTML slider (inline images and a few lines of JavaScript, no CDN),
 which the book renders instead (``_config.yml`` puts ``text/html`` before the widget view).
 """
@@ -46,6 +47,8 @@ class FrameExplorer:
     * ``start``: the index shown first.
     * ``alt``: what the figure shows, for readers who cannot see it (the value is appended).
     * ``scale``: the frames' pixels per CSS pixel.
+    * ``draw``: value -> figure; when given, the live widget is a continuous slider over [min(values),
+      max(values)] that draws each value it is released at (the static slider keeps the frames).
     """
 
     def __init__(
@@ -57,6 +60,7 @@ class FrameExplorer:
         start: int = 0,
         alt: str = "",
         scale: int = SCALE,
+        draw: Callable[[float], plt.Figure] | None = None,
     ):
         if len(frames) != len(values) or not frames:
             raise ValueError(f"need one frame per value; got {len(frames)} frames for {len(values)} values")
@@ -67,18 +71,33 @@ class FrameExplorer:
         self.start = int(start)
         self.alt = alt
         self.scale = scale
+        self.draw = draw
 
     def _labels(self) -> list[str]:
         return [self.fmt.format(v) for v in self.values]
 
     def widget(self):
-        """An ipywidgets view: a selection slider over the values and the matching image."""
+        """An ipywidgets view: a slider and the matching image (a precomputed frame, or one drawn on the fly)."""
         import ipywidgets as w
 
         labels = self._labels()
         image = w.Image(
             value=self.frames[self.start], format="png", width=png_width(self.frames[self.start]) // self.scale
         )
+        if self.draw is not None:
+            lo, hi = float(min(self.values)), float(max(self.values))
+            slider = w.FloatSlider(
+                value=float(self.values[self.start]),
+                min=lo,
+                max=hi,
+                step=(hi - lo) / 400,
+                description=f"{self.label} =",
+                continuous_update=False,  # one drawing per release
+                readout_format=".3g",
+                layout=w.Layout(width="60%"),
+            )
+            slider.observe(lambda change: setattr(image, "value", figure_png(self.draw(change["new"]))), names="value")
+            return w.VBox([slider, image])
         slider = w.SelectionSlider(
             options=list(zip(labels, range(len(labels)))),
             value=self.start,
@@ -134,6 +153,7 @@ def explorer(
     fmt: str = "{:g}",
     start: int = 0,
     alt: str = "",
+    live: bool = False,
 ) -> FrameExplorer:
     """Draw every frame once and return a :class:`FrameExplorer` over them.
 
@@ -143,5 +163,8 @@ def explorer(
     * ``label``, ``fmt``: the slider's name and how a value is printed.
     * ``start``: the index shown first.
     * ``alt``: what the figure shows, for readers who cannot see it (the value is appended).
+    * ``live``: in a live kernel, a continuous slider over the values' range that calls ``draw`` at each value it
+      is released at (``draw`` must accept any value in the range); the static site keeps the frames.
     """
-    return FrameExplorer([figure_png(draw(v)) for v in values], values, label, fmt, start, alt)
+    frames = [figure_png(draw(v)) for v in values]
+    return FrameExplorer(frames, values, label, fmt, start, alt, draw=draw if live else None)

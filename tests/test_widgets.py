@@ -40,3 +40,20 @@ def test_mimebundle_offers_both_renderings():
 def test_frames_and_values_must_match():
     with pytest.raises(ValueError, match="one frame per value"):
         widgets.FrameExplorer([b"png"], [1.0, 2.0])
+
+
+def test_live_widget_draws_any_value_of_the_range_on_the_fly():
+    drawn = []
+
+    def spy(T):
+        drawn.append(T)
+        return draw(T)
+
+    ex = widgets.explorer(spy, [1.0, 2.0, 4.0], label="T", start=1, live=True)
+    assert drawn == [1.0, 2.0, 4.0]  # the static frames
+    slider, image = ex.widget().children
+    assert (slider.min, slider.max, slider.value) == (1.0, 4.0, 2.0) and not slider.continuous_update
+    assert image.value == ex.frames[1]
+    slider.value = 2.75  # between two frames: drawn now
+    assert drawn[-1] == 2.75 and image.value == widgets.figure_png(draw(2.75))
+    assert ex.html().count("<img ") == 3  # the static slider keeps its frames
