@@ -105,21 +105,27 @@ class _ValueSolution:
         u = self.system.policy_from_gradient(xt, g).detach()
         return u.numpy() if is_numpy else u
 
-    def residual_field(self, x):
-        """The steady-state residual E_e(x; V(., 0)) :eq:`eq-ee` at states ``x`` (N, n). Returns (N,)."""
+    def residual_field(self, x, horizon: float | None = None):
+        """The steady-state residual E_e(x; V(., 0)) :eq:`eq-ee` at states ``x`` (N, n).
+
+        * ``horizon``: of V_tau(., 0) instead of V(., 0), as in :meth:`value`.
+
+        Returns (N,).
+        """
         xt, is_numpy = self._prepare(x)
-        e = SteadyStateHJB(self.system, self._value_fn(0.0)).field(xt)
+        e = SteadyStateHJB(self.system, self._value_fn(self._time(0.0, horizon))).field(xt)
         return e.numpy() if is_numpy else e
 
-    def evaluate(self, points_per_dim: int | None = None) -> dict:
+    def evaluate(self, points_per_dim: int | None = None, horizon: float | None = None) -> dict:
         """The horizon check E :eq:`eq-e` over Omega, and the errors against V*, mu* when the system knows them.
 
         * ``points_per_dim``: the grid's points per axis; None: :func:`pinnhjb.metrics.default_points_per_dim`.
+        * ``horizon``: of V_tau(., 0) instead of V(., 0), as in :meth:`value`.
 
         Returns the dict of :func:`pinnhjb.metrics.infinite_horizon_residual`, with those of
         :func:`pinnhjb.metrics.optimality_errors` when V* is known.
         """
-        fn = self._value_fn(0.0)
+        fn = self._value_fn(self._time(0.0, horizon))
         out = _metrics.infinite_horizon_residual(self.system, fn, points_per_dim=points_per_dim)
         if self.system.value_star is not None:
             out.update(_metrics.optimality_errors(self.system, fn, points_per_dim=points_per_dim))

@@ -195,3 +195,14 @@ def test_a_horizon_outside_the_chain_or_beside_t_is_refused(lq_chain, pendulum):
     steady = ph.SteadyStateSolver(pendulum, config(), seed=0, device="cpu", progress=False).solve()
     with pytest.raises(TypeError, match="SteadyStateSolution has no horizon"):
         steady.value(x, horizon=1.0)
+
+
+def test_the_horizon_check_and_residual_field_of_a_shorter_horizon(lq_chain):
+    """evaluate and residual_field at horizon tau are those of the chain cut at tau, when tau is a stage end."""
+    short = lq_chain.truncated(1)  # its horizon is 1
+    at_1 = lq_chain.evaluate(11, horizon=1.0)
+    assert at_1["E"] == pytest.approx(short.evaluate(11)["E"], rel=1e-9)
+    assert at_1["value_max_error"] == pytest.approx(short.evaluate(11)["value_max_error"], rel=1e-9)
+    x = lq_chain.system.grid(5).numpy()
+    np.testing.assert_allclose(lq_chain.residual_field(x, horizon=1.0), short.residual_field(x), rtol=1e-9, atol=1e-12)
+    assert lq_chain.evaluate(11, horizon=1.5)["E"] > lq_chain.evaluate(11)["E"]  # a shorter horizon, a larger E
