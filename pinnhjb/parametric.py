@@ -15,14 +15,14 @@ so r log-uniformly, and every solver, residual, optimiser and checkpoint works o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
 from .systems import ControlAffineSystem
 
-__all__ = ["WeightFamily"]
+__all__ = ["WeightFamily", "FamilyMember"]
 
 
 @dataclass(frozen=True)
@@ -130,3 +130,59 @@ class WeightFamily:
             scale = torch.as_tensor(scale, dtype=u_tilde.dtype, device=u_tilde.device)
         scale = scale.reshape(-1, 1) if np.ndim(r) else scale
         return u_tilde / scale
+
+    def member(self, solution, r: float) -> FamilyMember:
+        """The system with weight ``r * base.R`` as read from ``solution``: an object with the solution interface.
+
+        * ``solution``: a solution of :attr:`system`.
+        * ``r``: the weight, in ``r_range``.
+        """
+        self.states(np.zeros((1, self.base.n)), r)  # checks r
+        system = replace(
+            self.base, name=f"{self.base.name} (R = {r:g} R0)", R=r * self.base.R, params=None, builder=None
+        )
+        return FamilyMember(self, solution, float(r), system)
+
+
+@dataclass(frozen=True)
+class FamilyMember:
+    """One weight of a :class:`WeightFamily`, read from a trained solution of the family's system.
+
+    * ``family``: the family.
+    * ``solution``: the trained solution of ``family.system``.
+    * ``r``: the weight.
+    * ``system``: the base system with weight ``r * R0``.
+
+    :meth:`value`, :meth:`gradient`, :meth:`policy` and :meth:`residual_field` take states x (N, n) of the base
+    system, as a solution of it would.
+    """
+
+    family: WeightFamily
+    solution: object
+    r: float
+    system: ControlAffineSystem
+
+    @property
+    def horizon(self) -> float:
+        """The solution's horizon (``inf`` for a steady-state solution)."""
+        return getattr(self.solution, "horizon", math.inf)
+
+    def value(self, x, t: float = 0.0, horizon: float | None = None):
+        """V(x, t) at this weight; as :meth:`pinnhjb.solution.FiniteHorizonSolution.value`."""
+        return self.family.value(self.solution, x, self.r, t, horizon)
+
+    def gradient(self, x, t: float = 0.0, horizon: float | None = None):
+        """grad_x V(x, t) at this weight. Returns (N, n)."""
+        return self.family.gradient(self.solution, x, self.r, t, horizon)
+
+    def policy(self, x, t: float = 0.0, horizon: float | None = None):
+        """mu(x, t) at this weight. Returns (N, m)."""
+        return self.family.policy(self.solution, x, self.r, t, horizon)
+
+    def residual_field(self, x, horizon: float | None = None):
+        """The steady-state residual E_e :eq:`eq-ee` of this weight's system at states ``x`` (N, n).
+
+        The family's residual at (x, log10 r) is this system's: f and g have no component along s.
+        """
+        kw = {} if horizon is None else {"horizon": horizon}
+        return self.solution.residual_field(self.family.states(x, self.r), **kw)

@@ -94,6 +94,9 @@ def test_every_stored_checkpoint_migrates_to_the_phases_it_ran():
     kinds = set()
     for path in paths:
         stored = torch.load(path, map_location="cpu", weights_only=False)["config"]
+        if "phases" in stored:  # stored with phases: it reads back as it was written
+            assert ph.TrainConfig.from_dict(stored).to_dict() == stored, path
+            continue
         assert "phases" not in stored and stored["adam_steps"] == 0 and stored["lbfgs_steps"] == 0, path
         expected = ph.LevenbergMarquardt(
             steps=stored["lm_steps"],

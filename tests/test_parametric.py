@@ -67,3 +67,19 @@ def test_bad_ranges_and_weights_are_refused(family):
         WeightFamily("pendulum", (0.1, 10.0))
     with pytest.raises(ValueError, match=r"r must lie in r_range \[0.1, 10\]"):
         family.states(np.zeros((1, 2)), 20.0)
+
+
+def test_a_member_reads_like_a_solution_of_its_own_system(family, trained):
+    x = family.base.grid(5).numpy()
+    member = family.member(trained, 3.0)
+    assert member.system.R.tolist() == [[3.0]] and member.system.n == 2 and member.horizon == 1.0
+    np.testing.assert_array_equal(member.value(x), family.value(trained, x, 3.0))
+    np.testing.assert_array_equal(member.policy(x), family.policy(trained, x, 3.0))
+    # its residual is its own system's: the augmented E_e at (x, log10 r) against a direct evaluation
+    z = torch.as_tensor(family.states(x, 3.0)).requires_grad_(True)
+    v = trained.stages[0].model(z, 0.0)
+    (grad,) = torch.autograd.grad(v.sum(), z)
+    direct = member.system.hamiltonian_min(torch.as_tensor(x), grad[:, :2])
+    np.testing.assert_allclose(member.residual_field(x), direct.detach().numpy(), rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="r must lie in r_range"):
+        family.member(trained, 0.01)

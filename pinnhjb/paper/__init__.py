@@ -5,7 +5,8 @@
   chapters call (re-exported here: ``paper.load_case``, ``paper.stored_seeds``, ...);
 * :mod:`.reproduce`: the pipeline behind ``python -m pinnhjb reproduce``; :mod:`.evaluation` measures one
   trained case against its reference, :mod:`.tables` writes the results tables;
-* :mod:`.theorem3`: Theorem 3 demonstrated on a trained stage (chapter 5), ``python -m pinnhjb.paper.theorem3``.
+* :mod:`.theorem3`: Theorem 3 demonstrated on a trained stage (chapter 5), ``python -m pinnhjb.paper.theorem3``;
+* :mod:`.family`: the third-order system over the whole range of R as one network (chapter 6).
 """
 
 import importlib as _importlib
@@ -40,8 +41,8 @@ __all__ = [
 ]
 
 # Submodules imported on first use (``paper.reproduce`` after ``from pinnhjb import paper``); theorem3 is not
-# imported here so that ``python -m pinnhjb.paper.theorem3`` runs it only once.
-_LAZY = ("reproduce", "evaluation", "tables", "theorem3")
+# imported here so that ``python -m pinnhjb.paper.theorem3`` runs it only once (family likewise).
+_LAZY = ("reproduce", "evaluation", "tables", "theorem3", "family")
 
 
 def __getattr__(name):
