@@ -103,7 +103,7 @@ class WeightFamily:
     def value(self, solution, x, r, t: float = 0.0, horizon: float | None = None):
         """V(x, t) of the system with weight ``r * base.R``, read from ``solution`` (a solution of ``system``).
 
-        * ``solution``: a finite-horizon or steady-state solution of :attr:`system`.
+        * ``solution``: a finite-horizon or steady-state solution of ``system``.
         * ``x``: (N, n) states.
         * ``r``: the weight, or (N,) weights.
         * ``t``, ``horizon``: as in :meth:`pinnhjb.solution.FiniteHorizonSolution.value`.
@@ -134,7 +134,7 @@ class WeightFamily:
     def member(self, solution, r: float) -> FamilyMember:
         """The system with weight ``r * base.R`` as read from ``solution``: an object with the solution interface.
 
-        * ``solution``: a solution of :attr:`system`.
+        * ``solution``: a solution of ``system``.
         * ``r``: the weight, in ``r_range``.
         """
         self.states(np.zeros((1, self.base.n)), r)  # checks r

@@ -1,7 +1,7 @@
 """The third-order system over the paper's whole range of R as one network (chapter 6).
 
-:func:`family` is :class:`pinnhjb.parametric.WeightFamily` of ``third_order(R=1)`` over R in :data:`R_RANGE`;
-:func:`load` returns its stage on [0, :data:`HORIZON`] trained by the default recipe, from the stored checkpoint
+:func:`family` is :class:`pinnhjb.parametric.WeightFamily` of ``third_order(R=1)`` over R in ``R_RANGE``;
+:func:`load` returns its stage on [0, ``HORIZON``] trained by the default recipe, from the stored checkpoint
 (``artifacts/parametric/third_order_seed0.pt``), training and storing it first when it is missing or when asked
 (``python -m pinnhjb.paper.family``, a few seconds).
 """
@@ -28,23 +28,23 @@ SEED = 0
 
 
 def family() -> WeightFamily:
-    """The third-order systems with weight R in :data:`R_RANGE` (R0 = 1) as one system."""
+    """The third-order systems with weight R in ``R_RANGE`` (R0 = 1) as one system."""
     return WeightFamily(third_order(R=1.0), R_RANGE)
 
 
 def path(out: Path | None = None) -> Path:
     """The stored checkpoint.
 
-    * ``out``: the artifacts folder; None: :func:`pinnhjb.paper.artifacts_dir`.
+    * ``out``: the artifacts folder; None: :func:`pinnhjb.paper.artifacts.artifacts_dir`.
     """
     return Path(out or artifacts_dir()) / "parametric" / f"third_order_seed{SEED}.pt"
 
 
 def load(retrain: bool = False, out: Path | None = None, progress: bool = False) -> FiniteHorizonSolution:
-    """The family's trained stage on [0, :data:`HORIZON`] (a solution of ``family().system``).
+    """The family's trained stage on [0, ``HORIZON``] (a solution of ``family().system``).
 
     * ``retrain``: train and store it even when the checkpoint exists.
-    * ``out``: the artifacts folder; None: :func:`pinnhjb.paper.artifacts_dir`.
+    * ``out``: the artifacts folder; None: :func:`pinnhjb.paper.artifacts.artifacts_dir`.
     * ``progress``: show a progress bar when training.
     """
     fam = family()
