@@ -83,3 +83,14 @@ def test_a_member_reads_like_a_solution_of_its_own_system(family, trained):
     np.testing.assert_allclose(member.residual_field(x), direct.detach().numpy(), rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="r must lie in r_range"):
         family.member(trained, 0.01)
+
+
+def test_the_family_extends_like_any_system(family, trained):
+    """Theorem 2's extension works on the family unchanged: V_2 at every weight from the chain [0, 1] + [1, 2]."""
+    cfg = ph.TrainConfig.preset("default", eval_points_per_dim=11)
+    chain = ph.FiniteHorizonSolver(family.system, cfg, seed=0, device="cpu", progress=False).extend(trained, to=2.0)
+    x = family.base.grid(11).numpy()
+    for r in (0.1, 1.0, 10.0):
+        v = riccati_ode(A, B, Q, [[r]], 2.0).value(x, 0.0)
+        assert np.abs(family.value(chain, x, r) - v).max() <= 5e-3 * np.abs(v).max(), r
+        np.testing.assert_array_equal(family.value(chain, x, r, horizon=1.0), family.value(trained, x, r))
