@@ -220,6 +220,23 @@ def shared_times(gen, size: int, points_per_time: int, T: float, dtype, device) 
     return times[index], (times, index)
 
 
+def _objective(model, loss, sample, epochs, residual: Residual, point_sample, config: TrainConfig, desc: str):
+    """The :class:`~pinnhjb.optimizers.Objective` of ``model``'s network: its weights, loss and samplers."""
+    params = list(model.net.parameters())
+    return Objective(
+        params,
+        loss,
+        sample,
+        epochs,
+        config.sampling,
+        config.batch_size,
+        FlatParameters(model.net),
+        residual,
+        point_sample,
+        desc,
+    )
+
+
 def _residual(system, model, residual, default: str) -> Residual:
     """The residual object of form ``residual`` (a name, a class or None for ``default``) on ``model``."""
     form = get_residual(default if residual is None else residual)
@@ -302,19 +319,7 @@ def train_finite_horizon(
         t = _uniform(gen, size, T, dtype, device)
         return res.point_arguments(flow, t)
 
-    objective = Objective(
-        list(model.net.parameters()),
-        batch_loss,
-        sample,
-        epochs,
-        config.sampling,
-        config.batch_size,
-        FlatParameters(model.net),
-        res,
-        lm_sample,
-        desc,
-    )
-    return run_phases(objective, config, progress)
+    return run_phases(_objective(model, batch_loss, sample, epochs, res, lm_sample, config, desc), config, progress)
 
 
 def train_steady_state(
@@ -354,16 +359,4 @@ def train_steady_state(
     def lm_sample(size):
         return res.point_arguments(sample(size), None)
 
-    objective = Objective(
-        list(model.net.parameters()),
-        res.loss,
-        sample,
-        epochs,
-        config.sampling,
-        config.batch_size,
-        FlatParameters(model.net),
-        res,
-        lm_sample,
-        desc,
-    )
-    return run_phases(objective, config, progress)
+    return run_phases(_objective(model, res.loss, sample, epochs, res, lm_sample, config, desc), config, progress)
