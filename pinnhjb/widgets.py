@@ -17,6 +17,7 @@ import struct
 from collections.abc import Callable, Sequence
 
 import matplotlib.pyplot as plt
+from PIL import Image
 
 __all__ = ["FrameExplorer", "explorer", "figure_png", "png_width"]
 
@@ -24,11 +25,21 @@ SCALE = 2  # frames are drawn at 2 x 100 dpi and displayed at 100 CSS px per inc
 
 
 def figure_png(fig, dpi: int = 100 * SCALE) -> bytes:
-    """The PNG bytes of a matplotlib figure ``fig``, which is then closed; ``dpi``: the resolution."""
+    """The PNG bytes of a matplotlib figure ``fig``, which is then closed.
+
+    * ``fig``: the figure.
+    * ``dpi``: the resolution.
+
+    The image is stored with a palette of 256 colours (a plot has few): about a third of the bytes of full colour,
+    which matters for an explorer's dozens of inline frames.
+    """
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight", metadata={"Software": None})
     plt.close(fig)
-    return buf.getvalue()
+    buf.seek(0)
+    out = io.BytesIO()
+    Image.open(buf).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(out, "PNG", optimize=True)
+    return out.getvalue()
 
 
 def png_width(png: bytes) -> int:

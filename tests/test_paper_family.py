@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 import pinnhjb as ph
 from pinnhjb import paper
 from pinnhjb.paper import family
+from pinnhjb.paper.evaluation import true_errors
 
 
 @pytest.fixture(scope="module")
@@ -28,10 +28,10 @@ def test_the_family_is_as_good_as_the_per_r_networks_against_v_star(stored):
     for R in (0.01, 0.1, 1.0, 10.0, 100.0):
         case = f"third_order_R{R:g}"
         ref = paper.load_reference(case)
-        x = ref.points[ref.converged]
-        ours = np.abs(fam.value(stored, x, R) - ref.value[ref.converged]).max()
+        member = fam.member(stored, R)
+        ours = true_errors(member.system, member, ref)["value_max_error"]
         per_r = paper.load_case(case, seed=0)
-        theirs = np.abs(per_r.value(x) - ref.value[ref.converged]).max()
+        theirs = true_errors(per_r.system, per_r, ref)["value_max_error"]
         assert ours <= 2 * theirs, (R, ours, theirs)
 
 
