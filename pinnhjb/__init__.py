@@ -13,10 +13,11 @@ HJB (Fotiadis & Vamvoudakis). See the README and the book for the map from the p
 
 import importlib as _importlib
 
-from . import lq, metrics, optimizers, residuals, systems
+from . import lq, metrics, optimizers, parametric, residuals, systems
 from .config import TrainConfig
 from .gauss_newton import DivergenceError
 from .optimizers import LBFGS, Adam, LevenbergMarquardt
+from .parametric import ParametricFamily, WeightFamily
 from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
 from .solver import FiniteHorizonSolver, SteadyStateSolver
 from .storage import CheckpointError, load, save
@@ -30,6 +31,7 @@ __all__ = [
     "metrics",
     "residuals",
     "optimizers",
+    "parametric",
     "reference",
     "TrainConfig",
     "Adam",
@@ -42,6 +44,8 @@ __all__ = [
     "Stage",
     "ControlAffineSystem",
     "get_system",
+    "ParametricFamily",
+    "WeightFamily",
     "save",
     "load",
     "CheckpointError",

@@ -94,3 +94,123 @@ def test_the_family_extends_like_any_system(family, trained):
         v = riccati_ode(A, B, Q, [[r]], 2.0).value(x, 0.0)
         assert np.abs(family.value(chain, x, r) - v).max() <= 5e-3 * np.abs(v).max(), r
         np.testing.assert_array_equal(family.value(chain, x, r, horizon=1.0), family.value(trained, x, r))
+
+
+# ---------------------------------------------------------------------- a parameter in f, g, Q and R
+
+
+def _general_family():
+    """p in f, g, Q and a 2 x 2 R(p): every place a parameter can enter."""
+
+    def f(x, p):
+        return torch.stack([x[:, 1], -p * x[:, 0] - 0.5 * x[:, 1] + 0.1 * x[:, 0] ** 3], dim=-1)
+
+    def g(x, p):
+        out = torch.zeros(x.shape[0], 2, 2, dtype=x.dtype)
+        out[:, 0, 0], out[:, 1, 1], out[:, 1, 0] = 1.0, 1.0 + p, 0.2 * p
+        return out
+
+    def Q(x, p):
+        return (1.0 + p) * x[:, 0] ** 2 + x[:, 1] ** 2
+
+    def R(p):
+        out = torch.zeros(p.shape[0], 2, 2, dtype=p.dtype)
+        out[:, 0, 0], out[:, 1, 1], out[:, 0, 1], out[:, 1, 0] = 1.0 + p, 2.0, 0.3 * p, 0.3 * p
+        return out
+
+    return ph.parametric.ParametricFamily("general", f, g, Q, R, domain=[[-1, 1], [-1, 1]], p_range=(0.5, 2.0))
+
+
+def test_a_parameter_anywhere_gives_each_members_hamiltonian():
+    """min_u H and the policy map of the augmented system at (x, s) are those of the member ``at(p)``, with p in f,
+    g, Q and a full R(p) (no training)."""
+    family = _general_family()
+    assert family.log is False and family.s_range == (-0.75, 0.75) and family.centre == 1.25
+    gen = torch.Generator().manual_seed(1)
+    x = 2 * torch.rand(40, 2, generator=gen, dtype=torch.float64) - 1
+    lam = torch.randn(40, 3, generator=gen, dtype=torch.float64)
+    for p in (0.5, 1.1, 2.0):
+        member = family.at(p)
+        torch.testing.assert_close(
+            family.system.hamiltonian_min(family.states(x, p), lam), member.hamiltonian_min(x, lam[:, :2])
+        )
+        # the minimising input read back through the input map is the member's own
+        z = family.states(x, p)
+        u_tilde = family.system.policy_from_gradient(z, lam)
+        s = z[:, -1]
+        u = family._map(family._input_map(s), u_tilde)
+        torch.testing.assert_close(u, member.policy_from_gradient(x, lam[:, :2]))
+
+
+class _Lam:
+    """A stand-in solution whose gradient is a fixed field, to test the policy read back without training."""
+
+    def __init__(self, system):
+        self.system = system
+
+    def gradient(self, z, t=0.0):
+        z = torch.as_tensor(z, dtype=torch.float64)
+        return torch.stack([z[:, 0] + z[:, 1], z[:, 1] - 2 * z[:, 0], z[:, 2]], dim=-1).numpy()
+
+    def policy(self, z, t=0.0):
+        z = torch.as_tensor(z, dtype=torch.float64)
+        return self.system.policy_from_gradient(z, torch.as_tensor(self.gradient(z))).numpy()
+
+
+def test_the_policy_read_back_is_the_members_minimiser():
+    family = _general_family()
+    sol = _Lam(family.system)
+    x = family.at(1.0).grid(4).numpy()
+    for p in (0.5, 1.7):
+        grad = torch.as_tensor(family.gradient(sol, x, p))
+        expect = family.at(p).policy_from_gradient(torch.as_tensor(x), grad).numpy()
+        np.testing.assert_allclose(family.policy(sol, x, p), expect, rtol=1e-10, atol=1e-12)
+
+
+def test_one_network_over_a_dynamics_and_weight_parameter_gives_each_exact_lq_value():
+    """xdot = p x + u, cost x^2 + (2 + p) u^2, p in [-1, 1] (uniform): one stage on [0, 2] against the exact
+    Riccati V_2 of each p."""
+    family = ph.parametric.ParametricFamily(
+        "scalar",
+        lambda x, p: p[:, None] * x,
+        lambda x, p: torch.ones(x.shape[0], 1, 1, dtype=x.dtype),
+        lambda x, p: x[:, 0] ** 2,
+        R=lambda p: (2.0 + p)[:, None, None],
+        domain=[[-1, 1]],
+        p_range=(-1.0, 1.0),
+    )
+    assert family.log is False
+    cfg = ph.TrainConfig.preset("default", eval_points_per_dim=11)
+    sol = ph.FiniteHorizonSolver(family.system, cfg, seed=0, device="cpu", progress=False).solve(2.0)
+    x = np.linspace(-1, 1, 21)[:, None]
+    for p in (-1.0, -0.3, 0.0, 0.6, 1.0):
+        exact = riccati_ode([[p]], [[1.0]], [[1.0]], [[2.0 + p]], 2.0)
+        v, u = exact.value(x, 0.0), exact.policy(x, 0.0)
+        assert np.abs(family.value(sol, x, p) - v).max() <= 5e-3 * np.abs(v).max(), p
+        assert np.abs(family.policy(sol, x, p) - u).max() <= 1e-2 * np.abs(u).max(), p
+        assert np.abs(family.member(sol, p).value(x) - v).max() <= 5e-3 * np.abs(v).max(), p
+
+
+def test_bad_families_are_refused_before_training():
+    fam = _general_family()
+    with pytest.raises(ValueError, match="p_range"):
+        ph.parametric.ParametricFamily("x", fam.f, fam.g, fam.Q, fam.R, fam.domain, p_range=(2.0, 1.0))
+    with pytest.raises(ValueError, match="log=True samples log10 p"):
+        ph.parametric.ParametricFamily("x", fam.f, fam.g, fam.Q, fam.R, fam.domain, p_range=(-1.0, 1.0), log=True)
+    with pytest.raises(ValueError, match="symmetric positive definite"):
+        ph.parametric.ParametricFamily(
+            "x",
+            fam.f,
+            fam.g,
+            fam.Q,
+            lambda p: -torch.eye(2, dtype=p.dtype).expand(p.shape[0], 2, 2),
+            fam.domain,
+            (1, 2),
+        )
+    with pytest.raises(TypeError, match="f must be a batched torch callable"):
+        ph.parametric.ParametricFamily("x", None, fam.g, fam.Q, fam.R, fam.domain, (1, 2))
+    with pytest.raises(ValueError, match=r"p must lie in p_range \[0.5, 2\]"):
+        fam.at(3.0)
+    # log-uniform by default where the range spans a decade
+    wide = ph.parametric.ParametricFamily("x", fam.f, fam.g, fam.Q, [[1.0, 0.0], [0.0, 1.0]], fam.domain, (0.1, 10.0))
+    assert wide.log and wide.s_range == (-1.0, 1.0)
