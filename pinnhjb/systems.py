@@ -3,7 +3,8 @@
 A :class:`ControlAffineSystem` holds batched torch callables f, g, Q, the control weight R, the set Omega where
 results are judged, the training box, and optionally the known V* and mu*; it checks them when built. The
 built-ins are the paper's Section 6 with its constants: :func:`pendulum`, :func:`quartic`, :func:`third_order`
-and :func:`linear_quadratic`.
+and :func:`linear_quadratic`; and three in more dimensions: :func:`rigid_body` (6-D attitude control),
+:func:`lq_ladder` (a chain of k masses, n = 2k, exact V*) and :func:`converse` (nonlinear, n even, exact V*).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -28,6 +30,9 @@ __all__ = [
     "quartic",
     "third_order",
     "linear_quadratic",
+    "rigid_body",
+    "lq_ladder",
+    "converse",
     "get_system",
     "SYSTEMS",
 ]
@@ -587,6 +592,16 @@ def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") ->
       Omega itself.
     * ``name``: the system's label.
     """
+    return _linear_quadratic(A, B, Q, R, domain, train_domain, name)
+
+
+def _linear_quadratic(A, B, Q, R, domain, train_domain, name, params=None, builder="lq") -> ControlAffineSystem:
+    """:func:`linear_quadratic`, rebuilt through the registry as ``builder`` with ``params``.
+
+    * ``A``, ``B``, ``Q``, ``R``, ``domain``, ``train_domain``, ``name``: as in :func:`linear_quadratic`.
+    * ``params``: the keyword arguments that rebuild it through ``builder``; None: those of ``"lq"``.
+    * ``builder``: its registry name.
+    """
     from . import lq  # local import: lq is numpy/scipy only
 
     domain = _as_box(domain, np.atleast_2d(np.asarray(A, dtype=float)).shape[0], "domain (Omega)")
@@ -620,15 +635,16 @@ def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") ->
     def policy_star(x):
         return -x @ mat(K, x).T
 
-    params = {
-        "A": A.tolist(),
-        "B": B.tolist(),
-        "Q": Qm.tolist(),
-        "R": Rm.tolist(),
-        "domain": np.asarray(domain, dtype=float).tolist(),
-        "train_domain": None if train_domain is None else np.asarray(train_domain, dtype=float).tolist(),
-        "name": name,
-    }
+    if params is None:
+        params = {
+            "A": A.tolist(),
+            "B": B.tolist(),
+            "Q": Qm.tolist(),
+            "R": Rm.tolist(),
+            "domain": np.asarray(domain, dtype=float).tolist(),
+            "train_domain": None if train_domain is None else np.asarray(train_domain, dtype=float).tolist(),
+            "name": name,
+        }
     return ControlAffineSystem(
         name,
         f,
@@ -640,7 +656,212 @@ def linear_quadratic(A, B, Q, R, domain, train_domain=None, name: str = "lq") ->
         value_star=value_star,
         policy_star=policy_star,
         params=params,
-        builder="lq",
+        builder=builder,
+    )
+
+
+def _dimension(value, name: str, system: str, least: int, even: bool = False) -> int:
+    """A built-in's integer size parameter, checked before anything is built, or a ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{system}: parameter {name} must be an integer; got {value!r} ({type(value).__name__})")
+    if value < least:
+        raise ValueError(f"{system}: parameter {name} must be at least {least}; got {value}")
+    if even and value % 2:
+        raise ValueError(f"{system}: parameter {name} must be even (m = {name}/2 inputs); got {value}")
+    return int(value)
+
+
+def _euler_321(v: Tensor) -> tuple[Tensor, Tensor]:
+    """The 3-2-1 Euler-angle matrices of Tenavi/HJB_NN's ``examples/satellite/problem_def.py``, batched.
+
+    * ``v``: (N, 3) Euler angles (phi, theta, psi): roll, pitch, yaw.
+
+    Returns ``(E, R)``, each (N, 3, 3): the kinematics ``vdot = E(v) w`` of body rates w, and the rotation
+    ``R(v) = R1(phi) R2(theta) R3(psi)`` from inertial to body axes (the direction cosine matrix).
+    """
+    sf, cf = torch.sin(v[:, 0]), torch.cos(v[:, 0])
+    st, ct, tt = torch.sin(v[:, 1]), torch.cos(v[:, 1]), torch.tan(v[:, 1])
+    sp, cp = torch.sin(v[:, 2]), torch.cos(v[:, 2])
+    one, zero = torch.ones_like(sf), torch.zeros_like(sf)
+    E = torch.stack(
+        [
+            torch.stack([one, sf * tt, cf * tt], -1),
+            torch.stack([zero, cf, -sf], -1),
+            torch.stack([zero, sf / ct, cf / ct], -1),
+        ],
+        -2,
+    )
+    R = torch.stack(
+        [
+            torch.stack([ct * cp, ct * sp, -st], -1),
+            torch.stack([sf * st * cp - cf * sp, sf * st * sp + cf * cp, ct * sf], -1),
+            torch.stack([cf * st * cp + sf * sp, cf * st * sp - sf * cp, ct * cf], -1),
+        ],
+        -2,
+    )
+    return E, R
+
+
+#: The rigid body's constants (Tenavi/HJB_NN, examples/satellite/problem_def.py): inverse inertia, input
+#: matrix, total angular momentum in inertial axes, and the cost weights W1, W2, W3.
+RIGID_BODY_CONSTANTS = MappingProxyType(
+    {
+        "J_inv": ((1 / 2, 0.0, 0.0), (0.0, 1 / 3, 0.0), (0.0, 0.0, 1 / 4)),
+        "B": ((1.0, 1 / 20, 1 / 10), (1 / 15, 1.0, 1 / 10), (1 / 10, 1 / 15, 1.0)),
+        "h": (1.0, 1.0, 1.0),
+        "W": (1.0, 10.0, 0.5),
+    }
+)
+
+
+def rigid_body() -> ControlAffineSystem:
+    """The 6-D rigid-body (satellite) attitude problem of Nakamura-Zimmerer, Gong & Kang (SIAM J. Sci. Comput. 2021).
+
+    The constants and conventions are those of their code, Tenavi/HJB_NN ``examples/satellite/problem_def.py``
+    (``RIGID_BODY_CONSTANTS``). State ``x = (v, w)``: Euler angles ``v = (phi, theta, psi)`` (roll, pitch,
+    yaw; 3-2-1 sequence) and body rates ``w = (w1, w2, w3)``; three inputs (torques of momentum wheels).
+
+    ``vdot = E(v) w`` with ``E = [[1, sin(phi) tan(theta), cos(phi) tan(theta)], [0, cos(phi), -sin(phi)],
+    [0, sin(phi)/cos(theta), cos(phi)/cos(theta)]]``; ``wdot = J^{-1} (S(w) R(v) h + B u)`` with
+    ``J^{-1} = diag(1/2, 1/3, 1/4)``, ``B = [[1, 1/20, 1/10], [1/15, 1, 1/10], [1/10, 1/15, 1]]``, ``h = (1, 1, 1)``
+    the total angular momentum (body and wheels) in inertial axes, conserved, ``R(v) = R1(phi) R2(theta) R3(psi)``
+    the inertial-to-body rotation (so ``R(v) h`` is that momentum in body axes; ``R`` as printed in their code,
+    not ``R'``), and ``S(w) a = a x w`` (their ``S = [[0, w3, -w2], [-w3, 0, w1], [w2, -w1, 0]]``, i.e.
+    ``-[w]x``). With ``vdot = E w`` it satisfies ``d/dt R(v) = S(w) R(v)``: the body-axes momentum turns against
+    the body's rotation. The term ``S(w) R(v) h`` is linear in w, so f(0) = 0 holds with h != 0 as it stands: the
+    origin (attitude 0, body at rest) is an equilibrium with all of h stored in the wheels; like their code, nothing
+    is subtracted or changed for it. With u = 0 the kinetic energy ``w' J w / 2`` is conserved (``w'(a x w) = 0``).
+
+    Cost from their weights W1 = 1, W2 = 10, W3 = 0.5: ``Q(x) = W1/2 |v|^2 + W2/2 |w|^2 = |v|^2/2 + 5 |w|^2``,
+    ``R = W3/2 I = I/4``. Omega = [-pi/3, pi/3]^3 x [-pi/4, pi/4]^3, their box of initial states; trained on Omega
+    enlarged 1.1x (|theta| <= 1.1 pi/3 < pi/2, away from the Euler-angle singularity). V* is not known.
+    """
+    c = RIGID_BODY_CONSTANTS
+    J_inv, Bw, h = np.asarray(c["J_inv"]), np.asarray(c["B"]), np.asarray(c["h"])
+    w1, w2, w3 = c["W"]
+    G = np.vstack([np.zeros((3, 3)), J_inv @ Bw])
+
+    def mat(M, like):
+        return torch.as_tensor(M, dtype=like.dtype, device=like.device)
+
+    def f(x):
+        v, w = x[:, :3], x[:, 3:]
+        E, R = _euler_321(v)
+        vdot = torch.einsum("bij,bj->bi", E, w)
+        Rh = torch.einsum("bij,j->bi", R, mat(h, x))
+        wdot = torch.linalg.cross(Rh, w, dim=-1) @ mat(J_inv, x).T  # S(w) R h = (R h) x w
+        return torch.cat([vdot, wdot], dim=-1)
+
+    def g(x):
+        return mat(G, x).expand(x.shape[0], 6, 3)
+
+    def Q(x):
+        return w1 / 2 * (x[:, :3] ** 2).sum(-1) + w2 / 2 * (x[:, 3:] ** 2).sum(-1)
+
+    omega = np.array([[-np.pi / 3, np.pi / 3]] * 3 + [[-np.pi / 4, np.pi / 4]] * 3)
+    return ControlAffineSystem(
+        "rigid_body",
+        f,
+        g,
+        Q,
+        w3 / 2 * np.eye(3),
+        domain=omega,
+        train_domain=1.1 * omega,
+        params={},
+        builder="rigid_body",
+    )
+
+
+def lq_ladder(k: int) -> ControlAffineSystem:
+    """A chain of k unit masses on a line and unit springs, one force per mass: linear, n = 2k, m = k, V* by CARE.
+
+    Mass 1 is tied to a wall and each mass to its neighbours; mass k's right end is free. Positions q and
+    velocities qdot of the masses, in that order: ``x = (q_1, ..., q_k, qdot_1, ..., qdot_k)``,
+    ``A = [[0, I], [-K, 0]]`` with K the stiffness matrix (tridiagonal, 2 on the diagonal but 1 in the last row,
+    -1 beside it), ``B = [[0], [I]]``. Undamped: every mass is actuated, so (A, B) is controllable and Q = I
+    makes the problem regular without damping. Q = I, R = I, Omega = [-1, 1]^n, trained on [-1.25, 1.25]^n
+    (:func:`linear_quadratic`'s margin); ``V*(x) = x'Px``, ``mu*(x) = -B'Px`` with P from :func:`pinnhjb.lq.care`.
+
+    * ``k``: the number of masses, an integer >= 1.
+    """
+    k = _dimension(k, "k", "lq_ladder", 1)
+    stiffness = 2.0 * np.eye(k) - np.eye(k, k=1) - np.eye(k, k=-1)
+    stiffness[-1, -1] = 1.0
+    A = np.block([[np.zeros((k, k)), np.eye(k)], [-stiffness, np.zeros((k, k))]])
+    B = np.vstack([np.zeros((k, k)), np.eye(k)])
+    return _linear_quadratic(
+        A, B, np.eye(2 * k), np.eye(k), [[-1.0, 1.0]] * (2 * k), None, "lq_ladder", {"k": k}, "lq_ladder"
+    )
+
+
+def converse(n: int) -> ControlAffineSystem:
+    """A nonlinear system in n dimensions (n even) with a known V*, built by the converse-HJB method.
+
+    Chosen: ``V*(x) = x'Px + 1/2 sum_i x_i^4`` with P = I plus 1/4 on the first off-diagonals (eigenvalues in
+    (1/2, 3/2); V* strictly convex, radially unbounded, its gradient ``p = 2Px + 2x^3`` zero only at 0); m = n/2
+    inputs, input j driving ``x_{2j+1}`` (0-based) with gain ``1 + x_{2j}^2/2``; R = I/4; K = I/2; S the
+    skew-symmetric matrix with 1 above the diagonal inside each pair (2j, 2j+1), 1/2 between pairs (2j+1, 2j+2),
+    minus its transpose. With ``G(x) = g R^{-1} g'``:
+
+    ``Q(x) = 1/2 p'Kp = |p|^2/4`` (positive definite, Q(0) = 0) and ``f(x) = -1/2 K p + S p + 1/4 G p``
+    (f(0) = 0 as p(0) = 0). Then ``p'f = -Q + 0 + 1/4 p'Gp`` (``p'Sp = 0``), so the HJB
+    ``p'f + Q - 1/4 p'Gp = 0`` :eq:`eq-hjb` holds exactly; ``mu*(x) = -1/2 R^{-1} g'p = -2 g'p`` and the closed
+    loop ``f + g mu* = -1/2 K p + S p - 1/4 G p`` gives ``dV*/dt = -Q - 1/4 p'Gp = -(Q + mu*'R mu*) < 0``: V* is a
+    Lyapunov function, the closed loop is globally asymptotically stable, and V* is the optimal cost. The open
+    loop is unstable (its linearisation has eigenvalues with real part about +0.5). Omega = [-1, 1]^n, trained
+    on [-1.25, 1.25]^n.
+
+    * ``n``: the state dimension, an even integer >= 2.
+    """
+    n = _dimension(n, "n", "converse", 2, even=True)
+    m = n // 2
+    P = np.eye(n) + 0.25 * (np.eye(n, k=1) + np.eye(n, k=-1))
+    S = np.zeros((n, n))
+    S[np.arange(n - 1), np.arange(1, n)] = np.where(np.arange(n - 1) % 2 == 0, 1.0, 0.5)
+    S = S - S.T
+    R = 0.25 * np.eye(m)
+    R_inv = np.linalg.inv(R)
+    k_drift = 0.5  # K = k_drift I
+    rows, cols = 2 * np.arange(m) + 1, np.arange(m)
+
+    def mat(M, like):
+        return torch.as_tensor(M, dtype=like.dtype, device=like.device)
+
+    def grad_v(x):
+        return 2 * x @ mat(P, x) + 2 * x**3
+
+    def g(x):
+        out = torch.zeros(x.shape[0], n, m, dtype=x.dtype, device=x.device)
+        out[:, rows, cols] = 1 + 0.5 * x[:, 0::2] ** 2
+        return out
+
+    def f(x):
+        p = grad_v(x)
+        gx = g(x)
+        Gp = torch.einsum("bnm,bm->bn", gx, torch.einsum("bnm,bn->bm", gx, p) @ mat(R_inv, x).T)
+        return -0.5 * k_drift * p + p @ mat(S, x).T + 0.25 * Gp
+
+    def Q(x):
+        return 0.5 * k_drift * (grad_v(x) ** 2).sum(-1)
+
+    def value_star(x):
+        return torch.einsum("bi,ij,bj->b", x, mat(P, x), x) + 0.5 * (x**4).sum(-1)
+
+    def policy_star(x):
+        return -0.5 * torch.einsum("bnm,bn->bm", g(x), grad_v(x)) @ mat(R_inv, x).T
+
+    return ControlAffineSystem(
+        "converse",
+        f,
+        g,
+        Q,
+        R,
+        domain=[[-1.0, 1.0]] * n,
+        train_domain=[[-1.25, 1.25]] * n,
+        value_star=value_star,
+        policy_star=policy_star,
+        params={"n": n},
+        builder="converse",
     )
 
 
@@ -652,13 +873,17 @@ SYSTEMS: dict[str, Callable[..., ControlAffineSystem]] = {
     "quartic": quartic,
     "third_order": third_order,
     "lq": linear_quadratic,
+    "rigid_body": rigid_body,
+    "lq_ladder": lq_ladder,
+    "converse": converse,
 }
 
 
 def get_system(name: str, /, **params) -> ControlAffineSystem:
     """Build a registered system by name.
 
-    * ``name``: ``"pendulum"``, ``"quartic"``, ``"third_order"`` or ``"lq"`` (the keys of :data:`SYSTEMS`).
+    * ``name``: ``"pendulum"``, ``"quartic"``, ``"third_order"``, ``"lq"``, ``"rigid_body"``, ``"lq_ladder"`` or
+      ``"converse"`` (the keys of :data:`SYSTEMS`).
     * ``params``: the builder's keyword arguments.
     """
     if name not in SYSTEMS:
