@@ -5,7 +5,7 @@
   (every case of the book), else by seeded Monte Carlo with its standard error;
 * :func:`optimality_errors`: errors of V and mu against a known V*, mu*;
 * :func:`closed_loop`: simulate the policy and accumulate the cost :eq:`eq-cost`, so that a policy is judged by
-  what it does.
+  what it does; :func:`infinite_horizon_cost` adds the cost still to come after the run.
 
 A ``value_fn`` is a batched torch callable x (N, n) -> V(x) (N,), differentiable in x; points are float64 on
 the CPU (the solution objects move them to their own device and precision and back).
@@ -35,6 +35,7 @@ __all__ = [
     "policy_of",
     "closed_loop",
     "ClosedLoopResult",
+    "infinite_horizon_cost",
     "quadratic_fields",
     "GRID_MAX_POINTS",
     "MC_SAMPLES",
@@ -296,6 +297,31 @@ def closed_loop(
         cost=z[:, -1].numpy(),
         stabilized=np.isfinite(final) & (final < tol),
     )
+
+
+def infinite_horizon_cost(system, run: ClosedLoopResult) -> tuple[np.ndarray, np.ndarray]:
+    """The cost :eq:`eq-cost` of a closed-loop run to t = inf: J to ``t_final`` plus a tail x_f' P x_f.
+
+    P is the LQR value matrix of the linearisation at the origin
+    (:meth:`~pinnhjb.systems.ControlAffineSystem.linearize`, :func:`pinnhjb.lq.care`). Near the origin
+    V* = x'Px + O(abs(x)^3), so once a run has come close, the tail is the optimal cost still to come from x_f,
+    and the optimal policy's J + tail is V*(x0) up to the integration error. A run that has not come close has a
+    tail that is large against J (check the returned ``tail``); a run that diverged has an infinite cost.
+
+    * ``system``: the control-affine system the run simulated.
+    * ``run``: a :class:`ClosedLoopResult` of :func:`closed_loop`.
+
+    Returns ``(cost, tail)``, each (N,).
+    """
+    lin = system.linearize()
+    P = lq.care(lin.A, lin.B, lin.Q, system.R)
+    x_f = run.x[-1]
+    with np.errstate(invalid="ignore", over="ignore"):
+        tail = np.einsum("ni,ij,nj->n", x_f, P, x_f)
+        cost = run.cost + tail
+    bad = ~np.isfinite(cost)
+    cost[bad], tail[bad] = np.inf, np.inf
+    return cost, tail
 
 
 def quadratic_fields(A, B, Q, R, P, x) -> dict:

@@ -734,7 +734,7 @@ def rigid_body() -> ControlAffineSystem:
 
     Cost from their weights W1 = 1, W2 = 10, W3 = 0.5: ``Q(x) = W1/2 |v|^2 + W2/2 |w|^2 = |v|^2/2 + 5 |w|^2``,
     ``R = W3/2 I = I/4``. Omega = [-pi/3, pi/3]^3 x [-pi/4, pi/4]^3, their box of initial states; trained on Omega
-    enlarged 1.1x (|theta| <= 1.1 pi/3 < pi/2, away from the Euler-angle singularity). V* is not known.
+    enlarged 1.1x (abs(theta) <= 1.1 pi/3 < pi/2, away from the Euler-angle singularity). V* is not known.
     """
     c = RIGID_BODY_CONSTANTS
     J_inv, Bw, h = np.asarray(c["J_inv"]), np.asarray(c["B"]), np.asarray(c["h"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 from typing import ClassVar
 
@@ -87,13 +88,17 @@ def _stored_checkpoints() -> list[Path]:
 
 
 def test_every_stored_checkpoint_migrates_to_the_phases_it_ran():
-    """The checkpoints under artifacts/ were stored with flat optimiser fields (lm_steps, lm_points, ...): each
-    loads, and its config is the one phase it ran, with the stored settings."""
+    """Checkpoints stored before the optimiser phases have flat optimiser fields (lm_steps, lm_points, ...): each
+    loads, and its config is the one phase it ran, with the stored settings. The stored ones under artifacts/,
+    and the configs of the generation with ``lm_points_coarse`` kept in tests/data (those checkpoints were
+    retrained since)."""
     paths = _stored_checkpoints()
     assert len(paths) >= 30
+    legacy = json.loads((ROOT / "tests" / "data" / "legacy_configs.json").read_text())["configs"]
+    configs = [(p, torch.load(p, map_location="cpu", weights_only=False)["config"]) for p in paths]
+    configs += [(f"tests/data/legacy_configs.json[{k}]", c) for k, c in enumerate(legacy)]
     kinds = set()
-    for path in paths:
-        stored = torch.load(path, map_location="cpu", weights_only=False)["config"]
+    for path, stored in configs:
         if "phases" in stored:  # stored with phases: it reads back as it was written
             assert ph.TrainConfig.from_dict(stored).to_dict() == stored, path
             continue

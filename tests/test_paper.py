@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import pinnhjb as ph
 from pinnhjb import paper
@@ -34,7 +35,7 @@ def test_quick_run_writes_checkpoints_references_and_tables(quick_run):
     refs = sorted(p.name for p in (out / "reference").glob("*.npz"))
     assert "pendulum_inf.npz" in refs and "pendulum_T1.npz" in refs and "pendulum_T2.npz" in refs
     table = (out / "results" / "reproduce.md").read_text()
-    assert "| pendulum_extension | 1 | 0.0453 |" in table  # the paper's number beside ours
+    assert "| pendulum_extension | 1 | 1 | 0.0453 |" in table  # T, seeds, then the paper's number beside ours
     payload = json.loads((out / "results" / "reproduce.json").read_text())
     assert {"torch", "numpy", "pinnhjb", "created", "wall_time", "config"} <= set(payload["meta"])
     with open(out / "results" / "reproduce.csv") as fh:
@@ -46,10 +47,55 @@ def test_quick_run_reports_true_errors_and_closed_loop(quick_run):
     rows = {(r["case"], r["T"]): r for r in result["summary"]}
     pend = rows[("pendulum_extension", 2.0)]
     assert pend["value_max_error"]["mean"] > 0  # measured against the reference V*, not skipped
-    assert "E_reference_VT" in pend
-    assert 0.0 <= pend["fraction_stabilized"]["mean"] <= 1.0
+    assert "E_reference_VT" in pend and pend["value_rel_error"]["mean"] > 0 and pend["E_ratio"]["mean"] > 0
+    assert 0.0 <= pend["cost_within"]["mean"] <= 1.0 and pend["cost_ratio_max"]["mean"] >= 1.0 - 1e-3
     steady = rows[("quartic_steady", math.inf)]
-    assert steady["E"]["mean"] > 0 and "suboptimality_mean" in steady
+    assert steady["E"]["mean"] > 0 and "cost_ratio_mean" in steady
+    assert "cost_ratio_max" not in rows[("pendulum_extension", 1.0)]  # the final policy only, unless 'until'
+
+
+class _Exact:
+    """A stand-in solution that steers with the known optimal policy."""
+
+    def __init__(self, system):
+        self.system = system
+
+    def closed_loop(self, x0, t_final, dt):
+        return ph.metrics.closed_loop(self.system, self.system.policy_star, x0, t_final=t_final, dt=dt)
+
+
+def test_the_closed_loop_criterion_is_one_the_optimal_policy_passes():
+    """A slow LQ problem (time constant about 9 s) run for 20 s: the optimal policy leaves most states far from
+    the origin, so a bound on abs(x(t_final)) fails it; its cost to t = inf is V*(x0) from every state."""
+    system = ph.systems.linear_quadratic([[-0.05]], [[1.0]], [[1.0]], [[100.0]], domain=[[-1.0, 1.0]])
+    x0 = np.linspace(-1, 1, 21)[:, None]
+    v_star = system.value_star(torch.as_tensor(x0)).numpy()
+    settings = {"t_final": 20.0, "dt": 0.05}
+    m = paper.evaluation.closed_loop_metrics(system, _Exact(system), x0, v_star, settings)
+    assert m["cost_within"] == 1.0 and abs(m["cost_ratio_max"] - 1) < 1e-6 and m["cost_ratio_mean"] >= 1 - 1e-6
+    assert m["tail_share_max"] > 0.01  # the tail is not negligible here: it is what makes the criterion fair
+    run = _Exact(system).closed_loop(x0, **settings)
+    assert run.fraction_stabilized < 0.2
+    # a policy with half the optimal gain fails it
+    half = ph.metrics.closed_loop(system, lambda x: 0.5 * system.policy_star(x), x0, **settings)
+    cost, _ = ph.metrics.infinite_horizon_cost(system, half)
+    assert np.max(cost[v_star > 1e-6] / v_star[v_star > 1e-6]) > 1.01
+
+
+def test_first_horizons_and_convergence():
+    rows = [
+        {"T": 0.5, "E_ratio": 0.5, "value_rel_error": 0.5, "cost_ratio_max": 1.2},
+        {"T": 2.5, "E_ratio": 1e-4, "value_rel_error": 0.05, "cost_ratio_max": 1.005},
+        {"T": 4.5, "E_ratio": 1e-5, "value_rel_error": 0.005, "cost_ratio_max": 1.001},
+    ]
+    assert paper.evaluation.first_horizons(rows) == {
+        "E_ratio": 2.5,
+        "value_rel_error": 4.5,
+        "cost_ratio_max": 2.5,
+        "all": 4.5,
+    }
+    assert paper.evaluation.converged(rows[-1]) and not paper.evaluation.converged(rows[1])
+    assert not paper.evaluation.converged({"T": 1.0, "E_ratio": 0.0})  # a missing measure is not a pass
 
 
 def test_references_are_reused(quick_run):

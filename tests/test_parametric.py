@@ -1,4 +1,4 @@
-"""pinnhjb.parametric: one network for every control weight r R0, r over a range."""
+"""pinnhjb.parametric: one network for a family of systems, a control weight r R0 or any parameter p over a range."""
 
 from __future__ import annotations
 

@@ -22,10 +22,12 @@ from .artifacts import (
     stage_metric,
     stored_seeds,
 )
-from .cases import CASES, INF, Case, cases
+from .cases import CASES, CLOSED_LOOP_SYSTEM, CONVERGED, INF, Case, cases
 
 __all__ = [
     "CASES",
+    "CLOSED_LOOP_SYSTEM",
+    "CONVERGED",
     "INF",
     "Case",
     "cases",

@@ -99,18 +99,18 @@ def stored_seeds(case: str, out: Path | None = None) -> list[int]:
 
 
 def stage_metric(case: str, key: str, out: Path | None = None) -> dict[float, list[float]]:
-    """A metric of every stored seed of a chain case, per horizon: ``{T: [value per seed]}``.
+    """A metric of every stored seed of a chain case, per horizon it reached: ``{T: [value per seed]}``.
 
     * ``case``: the case's name; an unknown one is a KeyError.
     * ``key``: a metric of :meth:`~pinnhjb.solution.FiniteHorizonSolution.summary`, e.g. ``"E"``.
     * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
     """
-    spec = _case(case)
-    values: dict[float, list[float]] = {T: [] for T in spec.horizons}
+    _case(case)
+    values: dict[float, list[float]] = {}
     for seed in stored_seeds(case, out):
-        for T, row in zip(spec.horizons, load_case(case, seed, out).summary()):
-            values[T].append(row[key])
-    return values
+        for row in load_case(case, seed, out).summary():
+            values.setdefault(round(row["horizon"], 9), []).append(row[key])
+    return dict(sorted(values.items()))
 
 
 def reference_residual(case: str | Case, horizon: float, out: Path | None = None) -> float:

@@ -4,7 +4,7 @@ the reproduction evaluates them with (reference grids, closed-loop runs)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ..systems import get_system
 
@@ -16,6 +16,8 @@ __all__ = [
     "REFERENCE_POINTS",
     "CLOSED_LOOP",
     "CLOSED_LOOP_SYSTEM",
+    "CONVERGED",
+    "THIRD_ORDER_STEPS",
     "cases",
 ]
 
@@ -34,6 +36,9 @@ class Case:
     * ``to``: the horizon the chain is extended to; None: one stage.
     * ``step``: the extension's step.
     * ``paper``: horizon (``inf`` for the steady-state PINN) -> the paper's reported E.
+    * ``until``: extend one step at a time only until a stage meets :data:`CONVERGED` (``to`` is then the most it
+      may reach); False: always to ``to``.
+    * ``reference_to``: the longest horizon whose exact V_T is computed for the table's E(ref V_T) column.
     """
 
     name: str
@@ -44,6 +49,8 @@ class Case:
     to: float | None = None
     step: float | None = None
     paper: dict = field(default_factory=dict)
+    until: bool = False
+    reference_to: float = INF
 
     def build_system(self):
         """The case's system."""
@@ -51,7 +58,8 @@ class Case:
 
     @property
     def horizons(self) -> list[float]:
-        """The horizons the case reaches, in order (``[inf]`` for the steady-state PINN)."""
+        """The horizons the case reaches, in order (``[inf]`` for the steady-state PINN); for a case extended
+        ``until`` it converges, the horizons it may reach (a trained chain's own are its stages' ends)."""
         if self.kind == "steady":
             return [INF]
         if self.to is None:
@@ -62,6 +70,15 @@ class Case:
 
 #: The paper's Table 2: R -> E of the third-order system at T = 0.5.
 THIRD_ORDER_PAPER = {0.01: 0.0008, 0.1: 0.1152, 1.0: 0.0430, 10.0: 0.0031, 100.0: 0.0027}
+
+#: The third-order chains' extension step and the longest horizon they may reach, per R: the closed loop slows
+#: down as R grows (chapter 6), so steps and horizons grow with it.
+THIRD_ORDER_STEPS = {0.01: (1.0, 12.5), 0.1: (2.0, 30.5), 1.0: (2.0, 50.5), 10.0: (4.0, 80.5), 100.0: (4.0, 80.5)}
+
+#: What a converged chain meets: the horizon check over that of V = 0, E / E(V = 0); the value's error against
+#: the reference V*, max abs(V - V*_ref) / max abs(V*_ref) on Omega; and the closed-loop cost to t = inf over
+#: V*_ref from every initial state of the closed-loop grid (:func:`pinnhjb.paper.evaluation.closed_loop_metrics`).
+CONVERGED = {"E_ratio": 1e-3, "value_rel_error": 1e-2, "cost_ratio_max": 1.01}
 
 #: Every case of the reproduction, in the order of the results table.
 #:
@@ -81,15 +98,18 @@ CASES: list[Case] = [
     Case("quartic_one_stage", "quartic", first=4.0),
     Case("quartic_steady", "quartic", kind="steady"),
 ] + [
-    # Table 2 is T = 0.5; the large-R cases are extended to test the paper's explanation of the R trend.
+    # Table 2 is T = 0.5; each chain is then extended until it converges, to test the paper's explanation of the
+    # R trend (steps from benchmarks/third_order_horizon.py, which found the horizons each R needs)
     Case(
         f"third_order_R{R:g}",
         "third_order",
         params={"R": R},
         first=0.5,
-        to=1.5 if R >= 1 else None,
-        step=0.5 if R >= 1 else None,
+        to=THIRD_ORDER_STEPS[R][1],
+        step=THIRD_ORDER_STEPS[R][0],
         paper={0.5: E},
+        until=True,
+        reference_to=0.5,
     )
     for R, E in THIRD_ORDER_PAPER.items()
 ]
@@ -99,7 +119,7 @@ REFERENCE_POINTS = {"full": {2: (41, 21), 3: (5, 5)}, "quick": {2: (5, 5), 3: (3
 #: The closed-loop runs' settings, by mode.
 CLOSED_LOOP = {"full": {"t_final": 20.0, "dt": 0.01}, "quick": {"t_final": 10.0, "dt": 0.05}}
 #: Longer runs for the third-order system: a slow mode (time constant near 20 s with little control authority).
-CLOSED_LOOP_SYSTEM = {"third_order": {"t_final": 80.0, "dt": 0.05}}
+CLOSED_LOOP_SYSTEM = {"third_order": {"t_final": 80.0, "dt": 0.1}}
 
 
 def cases(quick: bool = False, only: list[str] | None = None) -> list[Case]:
@@ -114,7 +134,4 @@ def cases(quick: bool = False, only: list[str] | None = None) -> list[Case]:
         raise KeyError(f"unknown case(s) {unknown}; known: {[c.name for c in CASES]}")
     if not quick:
         return selected
-    return [
-        Case(c.name, c.system, c.params, c.kind, c.first, None if c.to is None else c.first + c.step, c.step, c.paper)
-        for c in selected
-    ]
+    return [c if c.to is None else replace(c, to=c.first + c.step, until=False) for c in selected]

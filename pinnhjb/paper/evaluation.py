@@ -6,9 +6,20 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .cases import CLOSED_LOOP, CLOSED_LOOP_SYSTEM, INF
+from ..metrics import infinite_horizon_cost
+from .cases import CLOSED_LOOP, CLOSED_LOOP_SYSTEM, CONVERGED, INF
 
-__all__ = ["reference_grid_residual", "true_errors", "closed_loop_metrics", "closed_loop_states", "stage_rows"]
+__all__ = [
+    "reference_grid_residual",
+    "true_errors",
+    "closed_loop_metrics",
+    "closed_loop_states",
+    "closed_loop_setup",
+    "stage_row",
+    "stage_rows",
+    "converged",
+    "first_horizons",
+]
 
 
 def reference_grid_residual(system, ref) -> float:
@@ -48,24 +59,33 @@ def true_errors(system, solution, ref) -> dict:
 
 
 def closed_loop_metrics(system, solution, x0: np.ndarray, v_star: np.ndarray, settings: dict) -> dict:
-    """The learned policy in closed loop: the fraction stabilized, and its cost against V* where it stabilized.
+    """The learned policy in closed loop: its cost to t = inf against V*, from every initial state.
+
+    The cost is J to ``t_final`` plus the optimal cost still to come (:func:`pinnhjb.metrics.infinite_horizon_cost`),
+    so the optimal policy scores J / V* = 1 from every state, however slowly its closed loop settles: a criterion
+    the optimal policy itself passes, unlike a bound on ``abs(x(t_final))``.
 
     * ``system``: the control-affine system.
     * ``solution``: the learned solution.
     * ``x0``: (N, n) initial states.
-    * ``v_star``: (N,), V* at ``x0``.
+    * ``v_star``: (N,), V* at ``x0``; states with V* <= 1e-6 (the origin) are left out.
     * ``settings``: ``t_final`` and ``dt`` of the runs (:data:`~pinnhjb.paper.cases.CLOSED_LOOP`).
 
-    Returns a dict: ``fraction_stabilized``, ``suboptimality_mean``, ``suboptimality_max`` (J / V*).
+    Returns a dict: ``cost_ratio_mean`` and ``cost_ratio_max`` (J / V*, infinite for a run that diverged),
+    ``cost_within`` (the fraction of states with J / V* <= :data:`~pinnhjb.paper.cases.CONVERGED`'s bound),
+    ``tail_share_max`` (the largest tail / J: small when the runs were long enough).
     """
     run = solution.closed_loop(x0, **settings)
-    keep = (v_star > 1e-6) & run.stabilized  # a truncated cost of a run that did not settle says nothing
-    ratio = run.cost[keep] / v_star[keep]
-    finite = np.isfinite(ratio)
+    cost, tail = infinite_horizon_cost(system, run)
+    keep = v_star > 1e-6
+    ratio = cost[keep] / v_star[keep]
+    with np.errstate(invalid="ignore"):
+        share = np.where(np.isfinite(cost[keep]), tail[keep] / cost[keep], np.inf)
     return {
-        "fraction_stabilized": run.fraction_stabilized,
-        "suboptimality_mean": float(np.mean(ratio[finite])) if finite.any() else float("nan"),
-        "suboptimality_max": float(np.max(ratio[finite])) if finite.any() else float("nan"),
+        "cost_ratio_mean": float(np.mean(ratio)),
+        "cost_ratio_max": float(np.max(ratio)),
+        "cost_within": float(np.mean(ratio <= CONVERGED["cost_ratio_max"])),
+        "tail_share_max": float(np.max(share)),
     }
 
 
@@ -84,32 +104,90 @@ def closed_loop_states(system, ref_points: np.ndarray, per_dim: int) -> np.ndarr
     return flat
 
 
-def stage_rows(case, system, sol, refs, x0_idx, mode: str) -> list[dict]:
-    """The results table's rows of one trained solution, one per horizon.
+def closed_loop_setup(case, system, refs, mode: str) -> dict:
+    """The closed-loop runs that judge a case's policies: initial states, V* there, and the run settings.
+
+    The known V* on an 11-per-axis grid of Omega where there is one (quartic), else a sub-grid of the V*
+    reference grid (11 per axis in 2-D, all 5^3 points in 3-D), without the points whose reference did not
+    converge.
 
     * ``case``: the :class:`~pinnhjb.paper.cases.Case`.
     * ``system``: its system.
-    * ``sol``: the trained solution.
-    * ``refs``: horizon -> :class:`~pinnhjb.reference.ReferenceGrid` (or None).
-    * ``x0_idx``: the closed loop's initial states, indices into the V* reference grid.
+    * ``refs``: horizon -> :class:`~pinnhjb.reference.ReferenceGrid`.
     * ``mode``: ``"full"`` or ``"quick"``.
+
+    Returns a dict: ``x0``, ``v_star`` and ``settings``, the runs' ``t_final`` and ``dt``.
     """
-    rows = []
-    views = [(INF, sol)] if case.kind == "steady" else [(h, sol.truncated(k + 1)) for k, h in enumerate(case.horizons)]
-    for horizon, view in views:
-        row = {"T": horizon, **{k: v for k, v in view.metrics.items()}}
-        if system.value_star is None and refs.get(INF) is not None:
-            row.update(true_errors(system, view, refs[INF]))
-        if refs.get(horizon) is not None and horizon != INF:
-            row["E_reference_VT"] = reference_grid_residual(system, refs[horizon])
-        rows.append(row)
-    # closed loop of the final policy only
     if system.value_star is not None:
         x0 = system.grid(11).numpy()
         v_star = system.value_star(torch.as_tensor(x0)).numpy()
     else:
         ref = refs[INF]
-        x0, v_star = ref.points[x0_idx], ref.value[x0_idx]
+        idx = closed_loop_states(system, ref.points, 11 if system.n == 2 else 5)
+        idx = idx[np.asarray(ref.converged)[idx]]
+        x0, v_star = ref.points[idx], ref.value[idx]
     settings = CLOSED_LOOP[mode] if mode == "quick" else CLOSED_LOOP_SYSTEM.get(case.system, CLOSED_LOOP[mode])
-    rows[-1].update(closed_loop_metrics(system, sol, x0, v_star, settings))
-    return rows
+    return {"x0": x0, "v_star": v_star, "settings": dict(settings)}
+
+
+def stage_row(system, view, refs, loop: dict | None = None) -> dict:
+    """The results table's row of one horizon of a chain (or of a steady-state solution).
+
+    * ``system``: the system.
+    * ``view``: the solution up to this horizon (:meth:`~pinnhjb.solution.FiniteHorizonSolution.truncated`).
+    * ``refs``: horizon -> :class:`~pinnhjb.reference.ReferenceGrid` (or None).
+    * ``loop``: the :func:`closed_loop_setup` to run the policy from; None: no closed loop.
+
+    Returns the solution's metrics with ``T``, ``E_ratio`` (E / E(V = 0)), the errors against the reference V*
+    (``value_rel_error``: max abs(V - V*_ref) / max abs(V*_ref)), E of the reference V_T and the closed loop's
+    :func:`closed_loop_metrics`, each where it applies.
+    """
+    horizon = getattr(view, "horizon", INF)
+    row = {"T": horizon if horizon == INF else round(float(horizon), 9), **view.metrics}
+    if row.get("E_zero"):
+        row["E_ratio"] = row["E"] / row["E_zero"]
+    if system.value_star is None and refs.get(INF) is not None:
+        ref = refs[INF]
+        row.update(true_errors(system, view, ref))
+        row["value_rel_error"] = row["value_max_error"] / float(np.abs(ref.value[np.asarray(ref.converged)]).max())
+    if horizon != INF and refs.get(row["T"]) is not None:
+        row["E_reference_VT"] = reference_grid_residual(system, refs[row["T"]])
+    if loop is not None:
+        row.update(closed_loop_metrics(system, view, loop["x0"], loop["v_star"], loop["settings"]))
+    return row
+
+
+def converged(row: dict) -> bool:
+    """Whether a :func:`stage_row` meets every bound of :data:`~pinnhjb.paper.cases.CONVERGED`."""
+    return all(key in row and row[key] <= bound for key, bound in CONVERGED.items())
+
+
+def first_horizons(rows: list[dict]) -> dict:
+    """The first horizon of a chain's rows at which each bound of :data:`~pinnhjb.paper.cases.CONVERGED` holds.
+
+    * ``rows``: one seed's :func:`stage_rows`, in order.
+
+    Returns ``{key: T or None}`` for every key of ``CONVERGED``, and ``"all"``: the first T where all hold.
+    """
+    out = {key: next((r["T"] for r in rows if key in r and r[key] <= bound), None) for key, bound in CONVERGED.items()}
+    out["all"] = next((r["T"] for r in rows if converged(r)), None)
+    return out
+
+
+def stage_rows(case, system, sol, refs, loop: dict) -> list[dict]:
+    """The results table's rows of one trained solution, one per horizon it reached.
+
+    * ``case``: the :class:`~pinnhjb.paper.cases.Case`.
+    * ``system``: its system.
+    * ``sol``: the trained solution.
+    * ``refs``: horizon -> :class:`~pinnhjb.reference.ReferenceGrid` (or None).
+    * ``loop``: the :func:`closed_loop_setup`; the final policy is run from it (every horizon's, for a case
+      extended ``until`` it converges).
+    """
+    if case.kind == "steady":
+        return [stage_row(system, sol, refs, loop)]
+    k_last = len(sol.stages)
+    return [
+        stage_row(system, sol.truncated(k), refs, loop if (case.until or k == k_last) else None)
+        for k in range(1, k_last + 1)
+    ]

@@ -17,7 +17,7 @@ from ..solver import FiniteHorizonSolver, SteadyStateSolver
 from ..storage import provenance, save
 from .artifacts import DEFAULT_OUT, checkpoint_path, reference_path
 from .cases import CLOSED_LOOP, CLOSED_LOOP_SYSTEM, INF, REFERENCE_POINTS, Case, cases
-from .evaluation import closed_loop_states, stage_rows
+from .evaluation import closed_loop_setup, converged, stage_row, stage_rows
 from .tables import aggregate, merge_records, reference_wall_time, write_tables
 
 __all__ = ["run"]
@@ -37,15 +37,23 @@ def _reference(case: Case, system, horizon: float, points: int, out: Path, progr
     return ref
 
 
-def _train(case: Case, system, config: TrainConfig, seed: int, progress: bool, on_stage):
+def _train(case: Case, system, config: TrainConfig, seed: int, progress: bool, on_stage, evaluate):
+    """The trained solution, and its rows when the case was evaluated stage by stage (``until``), else None."""
     if case.kind == "steady":
-        return SteadyStateSolver(system, config=config, seed=seed, progress=progress).solve()
+        return SteadyStateSolver(system, config=config, seed=seed, progress=progress).solve(), None
     solver = FiniteHorizonSolver(system, config=config, seed=seed, progress=progress)
     sol = solver.solve(case.first)
     on_stage(sol)
-    if case.to is not None:
-        sol = solver.extend(sol, to=case.to, step=case.step, callback=on_stage)
-    return sol
+    if case.to is None:
+        return sol, None
+    if not case.until:
+        return solver.extend(sol, to=case.to, step=case.step, callback=on_stage), None
+    rows = [evaluate(sol)]
+    while not converged(rows[-1]) and sol.horizon < case.to - 1e-9:
+        sol = solver.extend(sol, to=min(sol.horizon + case.step, case.to))
+        on_stage(sol)
+        rows.append(evaluate(sol))
+    return sol, rows
 
 
 def run(
@@ -93,22 +101,24 @@ def run(
             _reference(case, system, INF, t_pts, out, progress)
         if case.kind == "chain":
             for h in case.horizons:
-                refs[h] = _reference(case, system, h, t_pts, out, progress)
-        x0_idx = closed_loop_states(system, refs[INF].points, 11 if system.n == 2 else 5) if INF in refs else None
+                if h <= case.reference_to:
+                    refs[h] = _reference(case, system, h, t_pts, out, progress)
+        loop = closed_loop_setup(case, system, refs, mode)
         for seed in range(first_seed, seeds):
             print(f"== {case.name} (seed {seed})", flush=True)
             path = checkpoint_path(out, case.name, seed)
             t0 = time.perf_counter()
-            sol = _train(
+            sol, rows = _train(
                 case,
                 system,
                 config,
                 seed,
                 progress,
                 on_stage=lambda s, p=path, name=case.name: save(s, p, seed=s.stages[0].seed, case=name),
+                evaluate=lambda view, refs=refs, loop=loop: stage_row(system, view, refs, loop),
             )
             wall = time.perf_counter() - t0
-            rows = stage_rows(case, system, sol, refs, x0_idx, mode)
+            rows = rows or stage_rows(case, system, sol, refs, loop)
             save(sol, path, seed=seed, case=case.name, evaluation={"rows": rows})
             for row in rows:
                 print(
