@@ -20,15 +20,13 @@ import argparse
 import json
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import torch
+from _common import parse  # benchmarks/_common.py: the scripts run as benchmarks/<name>.py
 
 import pinnhjb as ph
 from pinnhjb.storage import provenance
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def true_errors(system, sol, points: int, seed: int) -> dict:
@@ -94,12 +92,7 @@ def main(argv=None) -> int:
     p.add_argument("--ratio", type=float, default=1e-6, help="stop at E / E(V = 0) <= this")
     p.add_argument("--max-horizon", type=float, default=8.0)
     p.add_argument("--points", type=int, default=4096, help="uniform states of Omega for the true errors")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", type=Path, default=RESULTS)
-    p.add_argument("--no-progress", action="store_true")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    args = parse(p, argv)
     sizes = {
         "lq_ladder": [int(n) for n in args.ladder.split(",") if n],
         "converse": [int(n) for n in args.converse.split(",") if n],

@@ -32,10 +32,9 @@ import json
 import math
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
-import torch
+from _common import parse  # benchmarks/_common.py: the scripts run as benchmarks/<name>.py
 
 import pinnhjb as ph
 from pinnhjb import paper
@@ -43,7 +42,6 @@ from pinnhjb.paper.evaluation import true_errors
 from pinnhjb.parametric import WeightFamily
 from pinnhjb.storage import provenance
 
-RESULTS = Path(__file__).resolve().parent / "results"
 R_VALUES = (0.01, 0.1, 1.0, 10.0, 100.0)
 
 
@@ -169,12 +167,7 @@ def main(argv=None) -> int:
     p.add_argument("--horizon", type=float, default=0.5, help="the stage length (the only stage without --to)")
     p.add_argument("--to", type=float, default=None, help="extend every network to this horizon")
     p.add_argument("--family-width", type=int, default=None, help="with --to: the family network's width")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", type=Path, default=RESULTS)
-    p.add_argument("--no-progress", action="store_true")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    args = parse(p, argv)
     config = ph.TrainConfig.preset("default")
     progress = not args.no_progress
     if args.to is not None:

@@ -21,17 +21,15 @@ import argparse
 import json
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
-import torch
+from _common import parse  # benchmarks/_common.py: the scripts run as benchmarks/<name>.py
 
 import pinnhjb as ph
 from pinnhjb import paper
 from pinnhjb.paper.evaluation import true_errors
 from pinnhjb.storage import provenance
 
-RESULTS = Path(__file__).resolve().parent / "results"
 # R: (chain step, largest horizon): steps and horizons grow with the closed loop's time constant
 PLAN = {0.01: (1.0, 12.0), 0.1: (2.0, 30.0), 1.0: (2.0, 50.0), 10.0: (4.0, 80.0), 100.0: (4.0, 80.0)}
 E_RATIO, V_REL = 1e-3, 1e-2
@@ -73,12 +71,7 @@ def run(R: float, step: float, horizon: float, seed: int, progress: bool) -> dic
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", type=Path, default=RESULTS)
-    p.add_argument("--no-progress", action="store_true")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    args = parse(p, argv)
     runs = [run(R, step, T, args.seed, not args.no_progress) for R, (step, T) in PLAN.items()]
     meta = {**provenance(), "seed": args.seed, "threads": args.threads, "config": ph.TrainConfig().to_dict()}
     args.out.mkdir(parents=True, exist_ok=True)

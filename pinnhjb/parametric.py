@@ -86,7 +86,7 @@ class ParametricFamily:
         object.__setattr__(self, "p_range", (lo, hi))
         object.__setattr__(self, "log", log)
         if callable(self.R):
-            probe = torch.tensor([lo, self.p_of(torch.tensor(sum(self.s_range) / 2)).item(), hi], dtype=torch.float64)
+            probe = torch.tensor([lo, self.p_of(torch.tensor(0.0)).item(), hi], dtype=torch.float64)  # s = 0: p_c
             Rp = self.R(probe)
             if not isinstance(Rp, torch.Tensor) or Rp.ndim != 3 or Rp.shape[0] != 3 or Rp.shape[1] != Rp.shape[2]:
                 raise ValueError(f"family '{self.name}': R(p) must return (N, m, m) for p of shape (N,)")
@@ -119,7 +119,7 @@ class ParametricFamily:
         """The augmented system's weight: R itself when constant, else R(p) at the middle of the s range."""
         if not callable(self.R):
             return np.atleast_2d(np.asarray(self.R, dtype=float))
-        mid = self.p_of(torch.tensor([sum(self.s_range) / 2], dtype=torch.float64))
+        mid = self.p_of(torch.zeros(1, dtype=torch.float64))  # s = 0 is the middle p_c
         return self.R(mid)[0].detach().numpy()
 
     def _input_map(self, s: torch.Tensor):
