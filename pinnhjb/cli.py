@@ -5,6 +5,7 @@
     python -m pinnhjb train quartic --preset adam_lbfgs --set adam.steps=500 --set lbfgs=off --out q.pt
     python -m pinnhjb evaluate artifacts/pendulum.pt
     python -m pinnhjb reproduce --seeds 3          # every simulation of the paper -> artifacts/
+    python -m pinnhjb reproduce --workers 4        # the same, 4 runs at a time (or --scheduler tcp://HOST:8786)
 
 ``train`` checks its arguments and that ``--out`` can be written before training, then saves a checkpoint after
 every stage (atomic), so an interrupted or failing run keeps its finished stages; a diverged stage is an error
@@ -212,6 +213,7 @@ def _evaluate(args) -> int:
 
 
 def _reproduce(args) -> int:
+    from .executor import check
     from .paper.reproduce import run
 
     if args.seeds < 1:
@@ -224,7 +226,22 @@ def _reproduce(args) -> int:
         print(f"tables rewritten: {args.out}/results/reproduce.md")
         return 0
     only = args.cases.split(",") if args.cases else None
-    result = run(out=args.out, seeds=args.seeds, quick=args.quick, only=only, progress=not args.no_progress)
+    try:
+        check(args.workers, args.scheduler, args.threads)
+    except ImportError as exc:
+        raise UsageError(str(exc)) from None
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"--workers / --scheduler / --threads: {exc}") from None
+    result = run(
+        out=args.out,
+        seeds=args.seeds,
+        quick=args.quick,
+        only=only,
+        progress=not args.no_progress,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        threads=args.threads,
+    )
     print(f"results: {args.out}/results/reproduce.md ({result['meta']['wall_time']:.0f} s)")
     return 0
 
@@ -281,6 +298,24 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", default="artifacts", help="folder for checkpoints, reference grids and results")
     r.add_argument("--cases", default=None, help="comma-separated subset of case names")
     r.add_argument("--tables-only", action="store_true", help="rewrite the results tables from stored records")
+    r.add_argument(
+        "--workers", type=int, default=None, metavar="N", help="train the (case, seed) runs in N local processes"
+    )
+    r.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="tcp://HOST:PORT",
+        help="train the runs on a Dask cluster (`dask scheduler`, then `dask worker tcp://HOST:PORT` on each "
+        "machine; every worker must see --out at the same path); not with --workers",
+    )
+    r.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="torch threads per run (default: 1 per worker; serially, torch's own). Same seeds give bit-identical "
+        "weights serially and in workers at the same thread count",
+    )
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(func=_reproduce)
     return p

@@ -37,7 +37,7 @@ import scipy.linalg as sla
 import torch
 from scipy.integrate import solve_bvp
 
-__all__ = ["ReferenceGrid", "solve_point", "reference_grid"]
+__all__ = ["ReferenceGrid", "solve_point", "reference_grid", "reference_points", "replay_cost"]
 
 _DT = torch.float64
 
@@ -412,6 +412,8 @@ class ReferenceGrid:
     * ``system``: the system's :meth:`~pinnhjb.systems.ControlAffineSystem.spec`.
     * ``status``: (N,), the ``solve_bvp`` status (0 = success).
     * ``info``: the settings of the solve (grid, box, tolerances, ``t_inf``, terminal cost, method).
+    * ``replay_value``: (N,) or None, :func:`reference_points` only: the cost of each point's open-loop control
+      re-integrated by a separate integrator (:func:`replay_cost`), to compare with ``value``.
     """
 
     points: np.ndarray
@@ -425,8 +427,9 @@ class ReferenceGrid:
     system: dict
     status: np.ndarray | None = None
     info: dict = field(default_factory=dict)
+    replay_value: np.ndarray | None = None
 
-    _ARRAYS = ("points", "value", "gradient", "policy", "converged", "max_bvp_residual", "status")
+    _ARRAYS = ("points", "value", "gradient", "policy", "converged", "max_bvp_residual", "status", "replay_value")
 
     def save(self, path) -> None:
         """Write a .npz file at ``path``: every array, and a JSON ``metadata`` string (system, horizon, settings,
@@ -484,33 +487,126 @@ def reference_grid(
 
     Returns a :class:`ReferenceGrid`.
     """
-    from tqdm.auto import tqdm
-
     if box is not None:
         box = np.asarray(box, dtype=float)
     pts = system.grid(points_per_dim, box=box).detach().cpu().numpy().astype(float)
+    box_ = system.domain if box is None else box
+    shape = (points_per_dim,) * system.n
+    strides = np.array([int(np.prod(shape[i + 1 :])) for i in range(system.n)])
+
+    def neighbours(k: int, solved: dict) -> list[int]:  # solved grid neighbours along each axis
+        idx = np.array(np.unravel_index(k, shape))
+        return [
+            int(k + s * strides[d])
+            for d in range(system.n)
+            for s in (-1, 1)
+            if 0 <= idx[d] + s < points_per_dim and int(k + s * strides[d]) in solved
+        ]
+
+    sweep = _sweep(system, pts, box_, neighbours, horizon, terminal_cost, progress, strict, "grid", False, kw)
+    sweep["info"] = {"points_per_dim": points_per_dim, **sweep["info"]}
+    return ReferenceGrid(**sweep)
+
+
+def reference_points(
+    system,
+    points: int = 1000,
+    seed: int = 0,
+    horizon: float = math.inf,
+    terminal_cost=None,
+    box=None,
+    progress: bool = True,
+    strict: bool = False,
+    replay: bool = True,
+    **kw,
+) -> ReferenceGrid:
+    """:func:`solve_point` at seeded uniform random states of Omega: the reference of a system whose dimension
+    rules out a grid (:func:`~pinnhjb.systems.rigid_body`, n = 6).
+
+    Points are swept by distance from the origin; each is warm-started from the nearest point already solved.
+
+    * ``system``: the control-affine system.
+    * ``points``: how many states, uniform in the box.
+    * ``seed``: the seed of numpy's generator that draws them (``numpy.random.default_rng``).
+    * ``horizon``, ``terminal_cost``: as in :func:`solve_point`.
+    * ``box``: (n, 2); None: Omega.
+    * ``progress``, ``strict``: as in :func:`reference_grid`.
+    * ``replay``: the reference's own check. Each solved point's open-loop control u(t) is fed back into the
+      dynamics by a separate integrator (``scipy.integrate.solve_ivp``, DOP853, rtol 1e-10), its cost summed and
+      the same terminal cost added: ``replay_value`` holds that cost, which must equal ``value``.
+    * ``kw``: ``t_inf``, ``tol``, ``max_nodes``, ``tail_tol``, passed to :func:`solve_point`.
+
+    Returns a :class:`ReferenceGrid` whose ``info`` records the seed and the number of points.
+    """
+    box_ = np.asarray(system.domain if box is None else box, dtype=float)
+    if not (isinstance(points, int) and points >= 1):
+        raise ValueError(f"points must be an integer >= 1; got {points!r}")
+    rng = np.random.default_rng(seed)
+    pts = box_[:, 0] + (box_[:, 1] - box_[:, 0]) * rng.random((points, system.n))
+    scale = np.maximum(np.abs(box_).max(axis=1), 1e-12)
+
+    def nearest(k: int, solved: dict) -> list[int]:  # the nearest solved point, in units of the box
+        if not solved:
+            return []
+        keys = np.fromiter(solved, dtype=int)
+        return [int(keys[np.argmin(np.linalg.norm((pts[keys] - pts[k]) / scale, axis=1))])]
+
+    sweep = _sweep(system, pts, box_, nearest, horizon, terminal_cost, progress, strict, "points", replay, kw)
+    sweep["info"] = {"points": points, "seed": seed, **sweep["info"]}
+    return ReferenceGrid(**sweep)
+
+
+def replay_cost(problem, res: dict, rtol: float = 1e-10) -> float:
+    """The cost of one reference solution's open-loop control, re-integrated: the check that ``res["value"]``
+    is a cost the control really achieves.
+
+    * ``problem``: ``res["_problem"]`` from :func:`solve_point` (it carries the horizon and terminal cost).
+    * ``res``: a converged result of :func:`solve_point`.
+    * ``rtol``: the integrator's relative tolerance (absolute: ``rtol / 100``).
+
+    The control ``u(t) = -1/2 R^{-1} g(x(t))' lam(t)`` is read off the BVP solution as a function of time only;
+    the state is integrated afresh under it (``solve_ivp``, DOP853) with the running cost, and the terminal cost
+    at the end is added (for the infinite horizon, the LQR tail ``x'Px`` at ``t_inf``).
+    """
+    from scipy.integrate import solve_ivp
+
+    prob, sol, n = problem, res["solution"], res["x0"].size
+    s = prob.system
+
+    def control(t):
+        y = sol.sol(t)
+        x = torch.as_tensor(y[:n], dtype=_DT)[None]
+        return -0.5 * prob.Rinv @ (s.g(x)[0].detach().numpy().T @ y[n : 2 * n])
+
+    def rhs(t, z):
+        x = torch.as_tensor(z[:n], dtype=_DT)[None]
+        u = control(t)
+        dx = s.f(x)[0].detach().numpy() + s.g(x)[0].detach().numpy() @ u
+        return np.append(dx, float(s.Q(x)[0]) + u @ prob.R @ u)
+
+    out = solve_ivp(rhs, (0.0, sol.x[-1]), np.append(res["x0"], 0.0), method="DOP853", rtol=rtol, atol=rtol / 100)
+    return float(out.y[n, -1]) + prob.phi_value(out.y[:n, -1])
+
+
+def _sweep(system, pts, box_, neighbours, horizon, terminal_cost, progress, strict, what, replay, kw) -> dict:
+    """Solve every point of ``pts`` outward from the origin, warm-starting each from the nearest of
+    ``neighbours(k, solved)``: the loop shared by :func:`reference_grid` and :func:`reference_points`."""
+    from tqdm.auto import tqdm
+
     N, n = pts.shape
     start = time.perf_counter()
     prob = _Problem(system, horizon, terminal_cost, kw.get("t_inf", 25.0))
-    box_ = system.domain if box is None else box
     scale = np.maximum(np.abs(box_).max(axis=1), 1e-12)
     order = np.argsort(np.linalg.norm(pts / scale, axis=1), kind="stable")
-    shape = (points_per_dim,) * n
-    strides = np.array([int(np.prod(shape[i + 1 :])) for i in range(n)])
     value, status = np.full(N, np.nan), np.full(N, -1, dtype=int)
     grad, pol = np.full((N, n), np.nan), np.full((N, system.m), np.nan)
     conv, resid = np.zeros(N, dtype=bool), np.full(N, np.nan)
+    replayed = np.full(N, np.nan)
     solved: dict[int, dict] = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for k in tqdm(order, desc=f"reference {system.name}", disable=not progress, leave=False):
-            idx = np.array(np.unravel_index(k, shape))
-            nbrs = [
-                int(k + s * strides[d])
-                for d in range(n)
-                for s in (-1, 1)
-                if 0 <= idx[d] + s < points_per_dim and int(k + s * strides[d]) in solved
-            ]
+            nbrs = neighbours(int(k), solved)
             guess = solved[min(nbrs, key=lambda j: np.linalg.norm(pts[j] - pts[k]))] if nbrs else None
             res = solve_point(system, pts[k], horizon=horizon, guess=guess, _problem=prob, **kw)
             status[k], resid[k] = res["status"], res["residual"]
@@ -519,15 +615,16 @@ def reference_grid(
             if res["converged"]:
                 conv[k] = True
                 value[k], grad[k], pol[k] = res["value"], res["gradient"], res["policy"]
-                solved[k] = res
+                solved[int(k)] = res
+                if replay:
+                    replayed[k] = replay_cost(res["_problem"], res)
     wall = time.perf_counter() - start
     if not conv.all():
-        msg = f"reference grid: {int((~conv).sum())} of {N} points did not converge (set to NaN)"
+        msg = f"reference {what}: {int((~conv).sum())} of {N} points did not converge (set to NaN)"
         if strict:
             raise RuntimeError(msg)
-        warnings.warn(msg, RuntimeWarning, stacklevel=2)
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
     info = {
-        "points_per_dim": points_per_dim,
         "box": np.asarray(box_).tolist(),
         "tol": kw.get("tol", 1e-8),
         "t_inf": prob.T if math.isinf(horizon) else None,
@@ -538,16 +635,19 @@ def reference_grid(
         else ("callable" if callable(terminal_cost) else np.asarray(terminal_cost).tolist()),
         "method": "Pontryagin BVP, scipy.integrate.solve_bvp, autograd Jacobians",
     }
-    return ReferenceGrid(
-        points=pts,
-        value=value,
-        gradient=grad,
-        policy=pol,
-        horizon=float(horizon),
-        converged=conv,
-        max_bvp_residual=resid,
-        wall_time=wall,
-        system=system.spec(),
-        status=status,
-        info=info,
-    )
+    out = {
+        "points": pts,
+        "value": value,
+        "gradient": grad,
+        "policy": pol,
+        "horizon": float(horizon),
+        "converged": conv,
+        "max_bvp_residual": resid,
+        "wall_time": wall,
+        "system": system.spec(),
+        "status": status,
+        "info": info,
+    }
+    if replay:
+        out["replay_value"] = replayed
+    return out

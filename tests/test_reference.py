@@ -10,7 +10,7 @@ import torch
 
 from pinnhjb import systems
 from pinnhjb.lq import care, riccati_ode
-from pinnhjb.reference import ReferenceGrid, reference_grid, solve_point
+from pinnhjb.reference import ReferenceGrid, reference_grid, reference_points, replay_cost, solve_point
 
 # unstable 2-state, one input; 3-state, two inputs (coupled R)
 LQ2 = (np.array([[1.0, 1.0], [0.0, 2.0]]), np.array([[0.0], [1.0]]), np.eye(2), np.array([[1.0]]))
@@ -138,3 +138,37 @@ def test_short_truncation_is_extended_or_flagged(quartic):
     assert grid.converged[4] and grid.value[4] == 0.0  # the origin (centre of the 3x3 grid)
     with pytest.raises(RuntimeError, match="did not converge"):
         reference_grid(quartic, points_per_dim=3, progress=False, t_inf=2.0, max_extensions=0, strict=True)
+
+
+def test_seeded_points_match_exact_value_and_replay(quartic, tmp_path):
+    """reference_points at seeded states: V* to the BVP's accuracy, and each open-loop control re-integrated gives
+    the value it claims (the check the 6-D rigid body's reference relies on)."""
+    ref = reference_points(quartic, 12, seed=3, progress=False)
+    X = torch.as_tensor(ref.points)
+    assert ref.points.shape == (12, 2) and ref.converged.all()
+    assert np.all(np.abs(ref.points) <= np.abs(quartic.domain).max())
+    assert np.abs(ref.value - quartic.value_star(X).numpy()).max() < 1e-5
+    assert np.abs(ref.replay_value - ref.value).max() < 1e-6 * ref.value.max()
+    again = reference_points(quartic, 12, seed=3, progress=False, replay=False)
+    np.testing.assert_array_equal(again.points, ref.points)  # the seed fixes the states
+    assert again.replay_value is None and ref.info["seed"] == 3 and ref.info["points"] == 12
+    path = tmp_path / "pts.npz"
+    ref.save(path)
+    back = ReferenceGrid.load(path)
+    np.testing.assert_array_equal(back.replay_value, ref.replay_value)
+    assert back.info["seed"] == 3
+
+
+def test_replay_detects_a_wrong_value(quartic):
+    """The replay is independent of the BVP's cost row: a perturbed costate gives a different cost."""
+    res = solve_point(quartic, np.array([0.8, -0.6]))
+    exact = replay_cost(res["_problem"], res)
+    assert abs(exact - res["value"]) < 1e-7
+    sol = res["solution"]
+    wrong = dict(res, solution=type("S", (), {"sol": lambda self, t: sol.sol(t) * 1.1, "x": sol.x})())
+    assert abs(replay_cost(res["_problem"], wrong) - res["value"]) > 1e-3
+
+
+def test_seeded_points_refuse_bad_count(quartic):
+    with pytest.raises(ValueError, match="points must be an integer"):
+        reference_points(quartic, 0, progress=False)
