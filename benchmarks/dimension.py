@@ -1,4 +1,4 @@
-"""Error and cost against the state dimension n, from the residual alone (issue #18, items 3 and 4, in part).
+"""Error and cost against the state dimension n, from the residual alone (issue #18, items 3 and 4).
 
 Systems with an exact V* (:mod:`pinnhjb.systems`): the LQ ladder ``lq_ladder(k)`` (n = 2k, V* by CARE) and the
 nonlinear ``converse(n)`` (V* in closed form). For each, the default recipe solves on [0, step] and extends one
@@ -6,12 +6,18 @@ stage at a time (``solve_until``) until E / E(V = 0) <= ``--ratio`` or ``--max-h
 the value are measured on ``--points`` seeded uniform states of Omega:
 
 * max abs(V - V*) / max V* and the mean relative error of grad V;
-* the training wall time, and a least-squares exponent of wall time against n (log-log) per family.
+* the training wall time, and a least-squares exponent of wall time against n (log-log) per family;
+* at the dimensions ``--compare``, our first-order recipe ``adam_lbfgs`` beside the default, on both systems.
 
-    .venv/bin/python benchmarks/dimension.py                       # n = 2, 4, 8 (ladder and converse)
-    .venv/bin/python benchmarks/dimension.py --ladder 2,4 --converse 4 --out /tmp/dim
+Every (system, n, recipe) is an independent run: ``--workers N`` runs N at a time in local processes and
+``--scheduler tcp://HOST:PORT`` on a Dask cluster (:func:`pinnhjb.executor.map_runs`), with the same rows as a
+serial run at the same ``--threads``.
 
-Writes ``dimension.md`` and ``dimension.json`` (config, seed, versions, wall times) to ``benchmarks/results/``.
+    .venv/bin/python benchmarks/dimension.py                       # ladder n = 2 ... 16, converse n = 2 ... 12
+    .venv/bin/python benchmarks/dimension.py --ladder 2,4 --converse 4 --compare "" --out /tmp/dim
+
+Writes ``dimension.md``, ``dimension.json`` (config, seed, versions, wall times) and the figure
+``dimension.png`` (error and wall time against n) to ``benchmarks/results/``.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import torch
 from _common import parse  # benchmarks/_common.py: the scripts run as benchmarks/<name>.py
 
 import pinnhjb as ph
+from pinnhjb.executor import map_runs
 from pinnhjb.storage import provenance
 
 
@@ -46,18 +53,31 @@ def true_errors(system, sol, points: int, seed: int) -> dict:
     }
 
 
-def run(system, args, step: float) -> dict:
-    solver = ph.FiniteHorizonSolver(system, "default", seed=args.seed, device="cpu", progress=not args.no_progress)
+BUILDERS = {"lq_ladder": lambda n: ph.systems.lq_ladder(n // 2), "converse": ph.systems.converse}
+
+
+def run(task: dict) -> dict:
+    """One (system, n, recipe) run: train by extension until the E bound or the horizon cap, then the true errors.
+
+    * ``task``: ``system`` (a key of :data:`BUILDERS`), ``n``, ``recipe`` (a preset name), ``step``, ``ratio``,
+      ``max_horizon``, ``points``, ``seed``, ``progress``.
+    """
+    system, step = BUILDERS[task["system"]](task["n"]), task["step"]
+    config = ph.TrainConfig.preset(task["recipe"], dimension=system.n)
+    if task["width"] is not None:
+        config = config.replace(width=task["width"])
+    solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device="cpu", progress=task["progress"])
     start = time.perf_counter()
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
         sol = solver.solve(step)
         zero = sol.metrics["E_zero"]
-        while sol.metrics["E"] > args.ratio * zero and sol.horizon < args.max_horizon - 1e-9:
+        while sol.metrics["E"] > task["ratio"] * zero and sol.horizon < task["max_horizon"] - 1e-9:
             sol = solver.extend(sol, to=sol.horizon + step)
     wall = time.perf_counter() - start
     row = {
         "system": system.name,
+        "recipe": task["recipe"],
         "n": system.n,
         "m": system.m,
         "weights": sum(p.numel() for p in sol.stages[0].model.parameters()),  # the first has no terminal network
@@ -66,10 +86,10 @@ def run(system, args, step: float) -> dict:
         "stages": len(sol.stages),
         "E_ratio": sol.metrics["E"] / zero,
         "wall_s": wall,
-        **true_errors(system, sol, args.points, args.seed),
+        **true_errors(system, sol, task["points"], task["seed"]),
     }
     print(
-        f"{system.name} n={system.n}: T={row['T']:g} E/E0={row['E_ratio']:.1e} "
+        f"{system.name} n={system.n} {task['recipe']}: T={row['T']:g} E/E0={row['E_ratio']:.1e} "
         f"V err={row['value_rel_error']:.1e} grad err={row['grad_mean_rel_error']:.1e} {row['wall_s']:.0f} s",
         flush=True,
     )
@@ -83,10 +103,33 @@ def exponent(rows: list[dict]) -> float | None:
     return float(np.polyfit(np.log([r["n"] for r in rows]), np.log([r["wall_s"] for r in rows]), 1)[0])
 
 
+def figure(rows: list[dict], path) -> None:
+    """Error and wall time against n, one line per (system, recipe), log-log: ``dimension.png``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_e, ax_t) = plt.subplots(1, 2, figsize=(9, 3.6), layout="constrained")
+    for (name, recipe), marker in zip(sorted({(r["system"], r["recipe"]) for r in rows}), "osD^v"):
+        sel = sorted((r for r in rows if (r["system"], r["recipe"]) == (name, recipe)), key=lambda r: r["n"])
+        n = [r["n"] for r in sel]
+        ax_e.loglog(n, [r["value_rel_error"] for r in sel], marker=marker, label=f"{name} ({recipe})")
+        ax_t.loglog(n, [r["wall_s"] for r in sel], marker=marker)
+    ax_e.axhline(1e-4, color="k", lw=0.8, ls=":")
+    ax_e.set(xlabel="state dimension n", ylabel="max |V - V*| / max V*")
+    ax_t.set(xlabel="state dimension n", ylabel="wall time (s)")
+    fig.legend(loc="outside lower center", ncols=2, fontsize="small")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--ladder", default="2,4,8", help="state dimensions n of the LQ ladder (even)")
-    p.add_argument("--converse", default="2,4,8", help="state dimensions n of the converse system (even)")
+    p.add_argument("--ladder", default="2,4,6,8,12,16", help="state dimensions n of the LQ ladder (even)")
+    p.add_argument("--converse", default="2,4,6,8,12", help="state dimensions n of the converse system (even)")
+    p.add_argument("--compare", default="6", help="dimensions at which adam_lbfgs runs too (both systems)")
+    p.add_argument("--width", type=int, default=None, help="the default recipe's width at every n (default: its rule)")
     p.add_argument("--step", type=float, default=2.0, help="the stage length (the ladder)")
     p.add_argument("--converse-step", type=float, default=0.5, help="the stage length of the converse system")
     p.add_argument("--ratio", type=float, default=1e-6, help="stop at E / E(V = 0) <= this")
@@ -99,8 +142,27 @@ def main(argv=None) -> int:
     }
     if any(n % 2 for ns in sizes.values() for n in ns):
         p.error("every n must be even (the ladder has n = 2k; the converse system m = n/2 inputs)")
-    rows = [run(ph.systems.lq_ladder(n // 2), args, args.step) for n in sizes["lq_ladder"]]
-    rows += [run(ph.systems.converse(n), args, args.converse_step) for n in sizes["converse"]]
+    compare = {int(n) for n in args.compare.split(",") if n}
+    common = dict(ratio=args.ratio, max_horizon=args.max_horizon, points=args.points, seed=args.seed)
+    width = {"default": args.width, "adam_lbfgs": None}
+    common["progress"] = not args.no_progress and args.workers is None and args.scheduler is None
+    steps = {"lq_ladder": args.step, "converse": args.converse_step}
+    tasks = [
+        dict(common, system=name, n=n, recipe=recipe, step=steps[name], width=width[recipe])
+        for name, ns in sizes.items()
+        for n in ns
+        for recipe in ["default"] + (["adam_lbfgs"] if n in compare else [])
+    ]
+    rows = map_runs(
+        run,
+        tasks,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        threads=args.threads,
+        progress=not args.no_progress,
+        desc="dimension runs",
+        label=lambda t: f"{t['system']} n={t['n']} {t['recipe']}",
+    )
     meta = {
         **provenance(),
         "seed": args.seed,
@@ -110,33 +172,57 @@ def main(argv=None) -> int:
         "ratio": args.ratio,
         "max_horizon": args.max_horizon,
         "points": args.points,
+        "compare": sorted(compare),
+        "width": args.width,
+        "workers": args.workers,
         "config": ph.TrainConfig.preset("default").to_dict(),
+        "configs": {r: ph.TrainConfig.preset(r).to_dict() for r in ("default", "adam_lbfgs")},
     }
-    fits = {name: exponent([r for r in rows if r["system"] == name]) for name in sizes}
+    default = [r for r in rows if r["recipe"] == "default"]
+    fits = {name: exponent([r for r in default if r["system"] == name]) for name in sizes}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "dimension.json").write_text(json.dumps({"meta": meta, "rows": rows, "exponents": fits}))
     lines = [
         "# Error and cost against the dimension (generated by `benchmarks/dimension.py`; do not edit)",
         "",
-        f"The default recipe (one network per system), stages of {args.step:g} s (the converse system "
+        f"The default recipe (one network per system, "
+        f"{f'3 x {args.width} at every n' if args.width else 'widths by its rule'}; `adam_lbfgs` beside it at n = "
+        f"{args.compare or 'none'}), "
+        f"stages of {args.step:g} s (the converse system "
         f"{args.converse_step:g} s: its open loop is fast and unstable) until E / E(V = 0) <= "
-        f"{args.ratio:g} or T = {args.max_horizon:g}, seed {args.seed}, {args.threads} thread(s), CPU; torch "
+        f"{args.ratio:g} or T = {args.max_horizon:g}, seed {args.seed}, {args.threads} thread(s) per run, "
+        f"{args.workers or 1} run(s) at a time, CPU; torch "
         f"{meta['torch']}; created {meta['created']}. Errors against the exact V* on {args.points} seeded uniform "
         "states of Omega.",
         "",
-        "| system | n | m | weights | step | T | E / E(V = 0) | max abs(V - V*) / max V* | mean rel. error of grad V | "
-        "wall s (training and measuring E) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| system | recipe | n | m | weights | step | T | E / E(V = 0) | max abs(V - V*) / max V* | "
+        "mean rel. error of grad V | wall s (training and measuring E) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['system']} | {r['n']} | {r['m']} | {r['weights']} | {r['step']:g} | {r['T']:g} | "
+            f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['weights']} | {r['step']:g} | {r['T']:g} | "
             f"{r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | {r['grad_mean_rel_error']:.1e} | {r['wall_s']:.0f} |"
         )
     lines.append("")
     for name, slope in fits.items():
         if slope is not None:
-            lines.append(f"Wall time against n, {name}: exponent {slope:.2f} (least squares on log-log).")
+            lines.append(f"Wall time against n, {name} (default): exponent {slope:.2f} (least squares on log-log).")
+    goal = [r for r in default if r["system"] == "lq_ladder"]
+    worst = max(goal, key=lambda r: r["value_rel_error"], default=None)
+    if worst is not None:
+        met = "met" if worst["value_rel_error"] <= 1e-4 else "missed"
+        lines.append(
+            f"Goal max relative V error <= 1e-4 at every n of the ladder: {met} (worst {worst['value_rel_error']:.1e} "
+            f"at n = {worst['n']})."
+        )
+    conv12 = [r for r in default if r["system"] == "converse" and r["n"] == 12]
+    if conv12:
+        met = "met" if conv12[0]["value_rel_error"] <= 1e-3 else "missed"
+        lines.append(f"Goal max relative V error <= 1e-3, converse n = 12: {met} ({conv12[0]['value_rel_error']:.1e}).")
+    lines.append("")
+    lines.append("![error and wall time against n](dimension.png)")
+    figure(rows, args.out / "dimension.png")
     (args.out / "dimension.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

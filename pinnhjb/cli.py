@@ -94,13 +94,13 @@ def _system(args):
         raise UsageError(f"{given}: {exc}") from None
 
 
-def _config(args) -> TrainConfig:
+def _config(args, dimension: int | None = None) -> TrainConfig:
     """The preset with every ``--set``: ``FIELD=VALUE`` for a TrainConfig field, ``PHASE.FIELD=VALUE`` for a field
     of the optimiser phase named PHASE (``adam``, ``lbfgs``, ``lm``), ``PHASE=off`` to drop that phase."""
     overrides = _parse_params(args.set, "--set")
     fields = {k: v for k, v in overrides.items() if "." not in k and v != "off"}
     try:
-        config = TrainConfig.preset(args.preset, system=args.system, **fields)
+        config = TrainConfig.preset(args.preset, system=args.system, dimension=dimension, **fields)
     except TypeError as exc:  # an unknown field
         raise UsageError(
             f"--set: {exc} (TrainConfig fields: {', '.join(TrainConfig.__dataclass_fields__)}; a phase's field: "
@@ -155,7 +155,7 @@ def _train(args) -> int:
     out = _check_out(args.out)
     _check_horizons(args)
     system = _system(args)
-    config = _config(args)
+    config = _config(args, system.n)
     kw = dict(config=config, seed=args.seed, device=args.device, progress=not args.no_progress)
     if args.steady_state:
         sol = SteadyStateSolver(system, **kw).solve()

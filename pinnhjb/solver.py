@@ -131,7 +131,7 @@ def _config(config, system) -> TrainConfig:
                 f"not one of them: use config='default' (ours), or borrow an example's settings with "
                 f"config=TrainConfig.preset('paper', system='pendulum')"
             )
-        return TrainConfig.preset(config, system=key)
+        return TrainConfig.preset(config, system=key, dimension=system.n)
     if isinstance(config, dict):
         return TrainConfig(**config)
     raise TypeError(f"config must be a TrainConfig, a preset name or a dict; got {type(config).__name__}")

@@ -278,3 +278,20 @@ def test_converse_optimal_closed_loop_decays_with_cost_v_star(n):
     # V* decreases along the optimal trajectories
     values = np.stack([system.value_star(x64(xt)).numpy() for xt in run.x[::50]])
     assert np.all(np.diff(values, axis=0) < 0)
+
+
+def test_default_width_rule_keeps_small_systems_and_widens_from_six():
+    """The default recipe's width rule: unchanged below n = 6 (the paper's systems and their benchmarks), 3 x 40
+    with more LM points than weights from n = 6 on; the solvers apply it to their system."""
+    from pinnhjb.config import WIDE_FROM, default_network
+
+    assert ph.TrainConfig.preset("default", dimension=2) == ph.TrainConfig.preset("default")
+    wide = ph.TrainConfig.preset("default", dimension=WIDE_FROM)
+    assert wide.width == 40 and wide.phase("lm").points == 4500 and wide.phase("lm").points_coarse == 2000
+    weights = 8 * 40 + 2 * 41 * 40 + 41  # 3 x 40 on (x, t) with n = 6: 3641
+    assert wide.phase("lm").points > weights > wide.phase("lm").points_coarse
+    assert ph.FiniteHorizonSolver(ph.systems.rigid_body(), "default").config.width == 40
+    assert ph.FiniteHorizonSolver(ph.systems.pendulum(), "default").config.width == 24
+    assert ph.TrainConfig.preset("default", dimension=8, width=16).width == 16  # an override still wins
+    with pytest.raises(ValueError, match="dimension must be an integer"):
+        default_network(0)

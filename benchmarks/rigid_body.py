@@ -1,0 +1,289 @@
+"""The 6-D rigid body from the residual alone (issue #18, item 2): true errors against a Pontryagin reference.
+
+:func:`pinnhjb.systems.rigid_body` is the satellite attitude problem of Nakamura-Zimmerer, Gong & Kang (SIAM J.
+Sci. Comput. 2021), n = 6, m = 3. No V* is known in closed form, so the reference is
+:func:`pinnhjb.reference.reference_points`: one Pontryagin BVP per state at ``--reference-points`` seeded uniform
+states of Omega, stored under ``artifacts/reference/`` (made once, then loaded), each checked by re-integrating
+its open-loop control (``replay_value`` = ``value``).
+
+* **Infinite horizon (our setting).** The default recipe, widened to ``--width``, solves on [0, step] and extends
+  one stage at a time until E / E(V = 0) <= ``--ratio``, T = ``--max-horizon`` or ``--max-time`` seconds of
+  training; after each stage: max abs(V - V_ref) / max V_ref and the mean relative error of grad V on the
+  reference points. Then the closed loop of the learned policy from the first ``--closed-loop`` reference states:
+  the cost to t = inf (J to ``t_final`` plus the LQR tail, :func:`pinnhjb.metrics.infinite_horizon_cost`) against
+  V_ref, and whether each run settles (norm of x(t_final) < 1e-3).
+* **Finite horizon (their setting).** T = 20 with terminal cost ``abs(v)^2/2 + abs(w)^2/2``, reached by extension in
+  stages of ``--finite-step``; V_20(., 0) against its own reference.
+
+    .venv/bin/python benchmarks/rigid_body.py
+    .venv/bin/python benchmarks/rigid_body.py --width 24 --max-horizon 8 --skip-finite --out /tmp/rb
+
+Writes ``rigid_body.md`` and ``rigid_body.json`` (config, seed, versions, wall times) to ``benchmarks/results/``
+and the trained chains to ``artifacts/checkpoints/rigid_body_inf/`` and ``rigid_body_T20/`` (``--save``), which
+chapter 8 loads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+from _common import parse  # benchmarks/_common.py: the scripts run as benchmarks/<name>.py
+
+import pinnhjb as ph
+from pinnhjb.reference import ReferenceGrid, reference_points
+from pinnhjb.storage import provenance
+
+ARTIFACTS = Path(__file__).resolve().parent.parent / "artifacts"
+FINITE_T = 20.0
+TERMINAL = 0.5 * np.eye(6)  # their terminal cost abs(v)^2/2 + abs(w)^2/2 as x'Px
+TERMINALS = {"lqr": "x'Px (the linearisation's LQR value)", "zero": "0 (the paper's)"}
+
+
+def reference(system, horizon: float, points: int, seed: int, progress: bool, artifacts: Path) -> ReferenceGrid:
+    """The stored reference at ``points`` seeded states (infinite horizon, or T = 20 with their terminal cost);
+    computed and saved when missing."""
+    tag = "inf" if math.isinf(horizon) else f"T{horizon:g}"
+    path = artifacts / "reference" / f"rigid_body_{tag}_{points}.npz"
+    if path.exists():
+        ref = ReferenceGrid.load(path)
+        if ref.info.get("seed") == seed:
+            return ref
+    print(f"reference {path.name}: {points} BVPs", flush=True)
+    kw = {"t_inf": 20.0} if math.isinf(horizon) else {"horizon": horizon, "terminal_cost": TERMINAL}
+    ref = reference_points(system, points, seed=seed, tol=1e-8, progress=progress, **kw)
+    ref.save(path)
+    return ref
+
+
+def errors(sol, ref: ReferenceGrid) -> dict:
+    """max abs(V - V_ref) / max V_ref and the mean relative error of grad V at the converged reference points."""
+    ok = ref.converged
+    x, v_ref, g_ref = ref.points[ok], ref.value[ok], ref.gradient[ok]
+    v, g = sol.value(x), sol.gradient(x)
+    rel_g = np.linalg.norm(g - g_ref, axis=1) / np.maximum(np.linalg.norm(g_ref, axis=1), 1e-12)
+    return {
+        "value_rel_error": float(np.max(np.abs(v - v_ref)) / np.max(np.abs(v_ref))),
+        "grad_mean_rel_error": float(np.mean(rel_g)),
+    }
+
+
+def chain(system, config, seed, step, terminal, until, ref, args, every=True) -> tuple[object, list[dict], float]:
+    """Solve on [0, step] and extend until ``until(sol, wall)`` holds; a row after every stage, with the errors
+    against ``ref`` after every stage (``every``) or after the last only."""
+    solver = ph.FiniteHorizonSolver(system, config, seed=seed, device="cpu", progress=not args.no_progress)
+    rows, wall = [], 0.0
+    with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
+        warnings.simplefilter("ignore", RuntimeWarning)
+        start = time.perf_counter()
+        sol = solver.solve(step, terminal_cost=terminal)
+        while True:
+            wall += time.perf_counter() - start
+            done = until(sol, wall)
+            row = {"T": sol.horizon, "E_ratio": sol.metrics["E"] / sol.metrics["E_zero"], "wall_s": wall}
+            row.update(errors(sol, ref) if every or done else {"value_rel_error": None, "grad_mean_rel_error": None})
+            rows.append(row)
+            print(f"  {row}", flush=True)
+            if done:
+                return sol, rows, wall
+            start = time.perf_counter()
+            sol = solver.extend(sol, to=sol.horizon + step)
+
+
+def closed_loop(system, sol, ref: ReferenceGrid, count: int, t_final: float, dt: float) -> dict:
+    """The learned policy from the first ``count`` converged reference states: cost to t = inf against V_ref."""
+    idx = np.flatnonzero(ref.converged)[:count]
+    run = ph.metrics.closed_loop(system, sol.policy, ref.points[idx], t_final=t_final, dt=dt)
+    cost, tail = ph.metrics.infinite_horizon_cost(system, run)
+    ratio = cost / ref.value[idx]
+    return {
+        "states": int(idx.size),
+        "settled": int(run.stabilized.sum()),
+        "cost_ratio_max": float(np.max(ratio)),
+        "cost_ratio_mean": float(np.mean(ratio)),
+        "tail_share_max": float(np.max(tail / cost)),
+        "t_final": t_final,
+        "dt": dt,
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--width", type=int, default=None, help="the hidden width (default: the recipe's rule, 40 at n = 6)")
+    p.add_argument("--points", type=int, default=None, help="LM points per iteration (default: the rule's)")
+    p.add_argument("--step", type=float, default=4.0, help="the stage length")
+    p.add_argument("--ratio", type=float, default=1e-6, help="stop at E / E(V = 0) <= this")
+    p.add_argument("--max-horizon", type=float, default=12.0)
+    p.add_argument("--max-time", type=float, default=1800.0, help="stop extending after this many seconds")
+    p.add_argument(
+        "--terminal",
+        choices=("lqr", "zero"),
+        default="lqr",
+        help="the first stage's terminal cost: x'Px, the linearisation's LQR value (default), or 0 (the paper's)",
+    )
+    p.add_argument("--ablation", action="store_true", help="also 3 x 24 chains to T = 8 from both terminal costs")
+    p.add_argument("--reference-points", type=int, default=1000)
+    p.add_argument("--closed-loop", type=int, default=100, help="initial states of the closed-loop check")
+    p.add_argument("--t-final", type=float, default=40.0)
+    p.add_argument("--dt", type=float, default=0.01)
+    p.add_argument("--finite-step", type=float, default=4.0, help="stage length towards T = 20 (their setting)")
+    p.add_argument("--skip-finite", action="store_true")
+    p.add_argument("--save", action="store_true", help="store the chains under ARTIFACTS/checkpoints/")
+    p.add_argument("--artifacts", type=Path, default=ARTIFACTS, help="where references and checkpoints live")
+    args = parse(p, argv)
+    system = ph.systems.rigid_body()
+    progress = not args.no_progress
+    ref_inf = reference(system, math.inf, args.reference_points, 0, progress, args.artifacts)
+    config = ph.TrainConfig.preset("default", dimension=system.n)
+    if args.width is not None:
+        config = config.replace(width=args.width)
+    if args.points is not None:
+        coarse = config.phase("lm").points_coarse
+        config = config.with_phase("lm", points=args.points, points_coarse=coarse if coarse < args.points else None)
+    args.width, args.points = config.width, config.phase("lm").points
+    lin = system.linearize()
+    lqr = ph.lq.care(lin.A, lin.B, lin.Q, system.R)
+    terminal = lqr if args.terminal == "lqr" else None
+
+    def until(sol, wall):
+        return (
+            sol.metrics["E"] <= args.ratio * sol.metrics["E_zero"]
+            or sol.horizon >= args.max_horizon - 1e-9
+            or wall >= args.max_time
+        )
+
+    print(f"rigid body, infinite horizon: width {args.width}, stages of {args.step:g} s", flush=True)
+    sol, rows, wall = chain(system, config, args.seed, args.step, terminal, until, ref_inf, args)
+    loop = closed_loop(system, sol, ref_inf, args.closed_loop, args.t_final, args.dt)
+    print(f"  closed loop: {loop}", flush=True)
+    result = {"infinite": {"stages": rows, "wall_s": wall, "closed_loop": loop}}
+    if args.ablation:  # what the terminal cost and the width do, on the small network
+        small = ph.TrainConfig.preset("default")
+        result["ablation"] = {}
+        for name, phi in (("zero", None), ("lqr", lqr)):
+            print(f"ablation: 3 x {small.width}, terminal cost {name}", flush=True)
+            _, rows_a, wall_a = chain(
+                system, small, args.seed, 2.0, phi, lambda s, w: s.horizon >= 8 - 1e-9, ref_inf, args
+            )
+            result["ablation"][name] = {"width": small.width, "stages": rows_a, "wall_s": wall_a}
+    if args.save:
+        ph.save(sol, args.artifacts / "checkpoints" / "rigid_body_inf" / f"seed{args.seed}.pt")
+    if not args.skip_finite:
+        ref_T = reference(system, FINITE_T, args.reference_points, 0, progress, args.artifacts)
+        print(f"rigid body, T = {FINITE_T:g} (their setting), stages of {args.finite_step:g} s", flush=True)
+        sol_T, rows_T, wall_T = chain(
+            system,
+            config,
+            args.seed,
+            args.finite_step,
+            TERMINAL,
+            lambda s, w: s.horizon >= FINITE_T - 1e-9,
+            ref_T,
+            args,
+            every=False,
+        )
+        result["finite"] = {"stages": rows_T, "wall_s": wall_T}
+        if args.save:
+            ph.save(sol_T, args.artifacts / "checkpoints" / "rigid_body_T20" / f"seed{args.seed}.pt")
+    meta = {
+        **provenance(),
+        "seed": args.seed,
+        "threads": args.threads,
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "config": config.to_dict(),
+        "weights": sum(q.numel() for q in sol.stages[0].model.parameters()),
+        "reference": {
+            "points": int(ref_inf.converged.sum()),
+            "wall_s": ref_inf.wall_time,
+            "replay_max_rel": float(np.nanmax(np.abs(ref_inf.replay_value - ref_inf.value) / ref_inf.value)),
+        },
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "rigid_body.json").write_text(json.dumps({"meta": meta, **result}))
+    (args.out / "rigid_body.md").write_text(table(meta, result, args))
+    print(table(meta, result, args))
+    return 0
+
+
+def table(meta: dict, result: dict, args) -> str:
+    """The results as a markdown page: the stages, the closed loop, and the issue's goals met or missed."""
+    inf, loop = result["infinite"], result["infinite"]["closed_loop"]
+    last = inf["stages"][-1]
+    lines = [
+        "# The 6-D rigid body from the residual alone (generated by `benchmarks/rigid_body.py`; do not edit)",
+        "",
+        f"Default recipe with a 3 x {args.width} network ({meta['weights']} weights), {args.points} LM points per "
+        f"iteration, stages of {args.step:g} s from the terminal cost {TERMINALS[args.terminal]}, seed "
+        f"{args.seed}, {args.threads} thread(s), CPU; torch {meta['torch']}; created {meta['created']}. Reference: "
+        f"{meta['reference']['points']} converged Pontryagin BVPs at seeded uniform states of Omega "
+        f"({meta['reference']['wall_s']:.0f} s to compute; their open-loop controls re-integrated give the same "
+        f"cost to {meta['reference']['replay_max_rel']:.0e}).",
+        "",
+        "## Infinite horizon",
+        "",
+        "| T | E / E(V = 0) | max abs(V - V_ref) / max V_ref | mean rel. error of grad V | wall s (cumulative) |",
+        "|---|---|---|---|---|",
+    ]
+    for r in inf["stages"]:
+        lines.append(
+            f"| {r['T']:g} | {r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | {r['grad_mean_rel_error']:.1e} | "
+            f"{r['wall_s']:.0f} |"
+        )
+    lines += [
+        "",
+        f"Closed loop of the last stage's policy from {loop['states']} reference states (RK4, dt {loop['dt']:g}, to "
+        f"t = {loop['t_final']:g}, then the LQR tail): {loop['settled']} of {loop['states']} settle (norm of "
+        f"x(t_final) < 1e-3); cost / V_ref: mean {loop['cost_ratio_mean']:.4f}, max {loop['cost_ratio_max']:.4f}.",
+        "",
+        "| goal (issue #18) | measured | met |",
+        "|---|---|---|",
+        f"| max abs(V - V_ref) / max V_ref <= 1e-3 | {last['value_rel_error']:.1e} | "
+        f"{'yes' if last['value_rel_error'] <= 1e-3 else 'no'} |",
+        f"| mean rel. error of grad V <= 1e-2 | {last['grad_mean_rel_error']:.1e} | "
+        f"{'yes' if last['grad_mean_rel_error'] <= 1e-2 else 'no'} |",
+        f"| all {loop['states']} closed loops settle | {loop['settled']} | "
+        f"{'yes' if loop['settled'] == loop['states'] else 'no'} |",
+        f"| closed-loop cost within 0.1% of V_ref | max {loop['cost_ratio_max']:.4f} | "
+        f"{'yes' if loop['cost_ratio_max'] <= 1.001 else 'no'} |",
+        f"| under 30 minutes on 2 CPU cores | {inf['wall_s']:.0f} s | {'yes' if inf['wall_s'] <= 1800 else 'no'} |",
+    ]
+    if "ablation" in result:
+        lines += [
+            "",
+            "## What the terminal cost does (3 x 24 network, stages of 2 s)",
+            "",
+            "| first terminal cost | T | E / E(V = 0) | max abs(V - V_ref) / max V_ref | mean rel. error of grad V |",
+            "|---|---|---|---|---|",
+        ]
+        for name, abl in result["ablation"].items():
+            for r in abl["stages"]:
+                lines.append(
+                    f"| {TERMINALS[name]} | {r['T']:g} | {r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | "
+                    f"{r['grad_mean_rel_error']:.1e} |"
+                )
+    if "finite" in result:
+        lines += [
+            "",
+            f"## Finite horizon T = {FINITE_T:g} (their setting: terminal cost abs(v)^2/2 + abs(w)^2/2)",
+            "",
+            "| T | E / E(V = 0) | max abs(V_T - V_T,ref) / max V_T,ref at t = 0 | mean rel. error of grad V_T | "
+            "wall s (cumulative) |",
+            "|---|---|---|---|---|",
+        ]
+        for r in result["finite"]["stages"]:
+            errs = [f"{r[k]:.1e}" if r[k] is not None else "-" for k in ("value_rel_error", "grad_mean_rel_error")]
+            lines.append(f"| {r['T']:g} | {r['E_ratio']:.1e} | {errs[0]} | {errs[1]} | {r['wall_s']:.0f} |")
+        lines += [
+            "",
+            f"Only the chain at T = {FINITE_T:g} is their problem, so only it is compared with the reference.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,63 @@
+"""The n-D benchmark scripts (benchmarks/dimension.py, benchmarks/rigid_body.py) end to end on tiny settings: what
+they write, and that a sweep in worker processes writes the same rows as a serial one. Their numbers are measured
+in ``benchmarks/``, never here."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _module(name: str):
+    sys.path.insert(0, str(BENCHMARKS))  # the scripts import benchmarks/_common.py as a sibling
+    try:
+        spec = importlib.util.spec_from_file_location(f"{name}_benchmark", BENCHMARKS / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return module
+
+
+def test_dimension_rows_are_the_same_in_workers(tmp_path):
+    """As a script (its run function is pickled from __main__): serial and two worker processes, same rows."""
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "0.5"]
+    tiny += ["--points", "256", "--threads", "1", "--no-progress"]
+    rows = {}
+    for name, extra in (("serial", []), ("workers", ["--workers", "2"])):
+        cmd = [sys.executable, str(BENCHMARKS / "dimension.py"), *tiny, "--out", str(tmp_path / name), *extra]
+        subprocess.run(cmd, check=True, capture_output=True, timeout=300)
+        rows[name] = json.loads((tmp_path / name / "dimension.json").read_text())["rows"]
+    for a, b in zip(rows["serial"], rows["workers"], strict=True):
+        assert {k: v for k, v in a.items() if k != "wall_s"} == {k: v for k, v in b.items() if k != "wall_s"}
+    row = rows["serial"][0]
+    assert row["system"] == "lq_ladder" and row["n"] == 2 and row["recipe"] == "default"
+    assert 0 < row["value_rel_error"] < 1  # a trained network, measured against the exact V*
+    page = (tmp_path / "serial" / "dimension.md").read_text()
+    assert "Goal max relative V error <= 1e-4" in page and (tmp_path / "serial" / "dimension.png").stat().st_size
+    dimension = _module("dimension")
+    with pytest.raises(SystemExit):  # refused before any run
+        dimension.main([*tiny, "--out", str(tmp_path / "bad"), "--workers", "0"])
+
+
+def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
+    rigid_body = _module("rigid_body")
+    args = ["--reference-points", "4", "--width", "8", "--points", "200", "--step", "0.5", "--max-horizon", "0.5"]
+    args += ["--closed-loop", "3", "--t-final", "2", "--dt", "0.05", "--skip-finite", "--save", "--threads", "1"]
+    args += ["--no-progress", "--artifacts", str(tmp_path / "artifacts"), "--out", str(tmp_path / "out")]
+    assert rigid_body.main(args) == 0
+    assert (tmp_path / "artifacts" / "reference" / "rigid_body_inf_4.npz").exists()
+    assert (tmp_path / "artifacts" / "checkpoints" / "rigid_body_inf" / "seed0.pt").exists()
+    result = json.loads((tmp_path / "out" / "rigid_body.json").read_text())
+    assert result["meta"]["reference"]["replay_max_rel"] < 1e-6  # the reference's own check
+    assert [r["T"] for r in result["infinite"]["stages"]] == [0.5]
+    assert result["infinite"]["closed_loop"]["states"] == 3
+    page = (tmp_path / "out" / "rigid_body.md").read_text()
+    assert "| max abs(V - V_ref) / max V_ref <= 1e-3 |" in page and "3 x 8 network" in page
