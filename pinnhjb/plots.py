@@ -27,6 +27,9 @@ __all__ = [
     "loss_curve",
     "time_to_accuracy",
     "grouped_bars",
+    "value_slices",
+    "manoeuvres",
+    "against_dimension",
 ]
 
 CMAP = "viridis"
@@ -380,4 +383,112 @@ def grouped_bars(values: dict, ylabel: str, title: str = "", log: bool = True):
     if title:
         ax.set_title(title)
     fig.tight_layout()
+    return fig
+
+
+def value_slices(sol, planes, points, errors, labels, points_per_dim: int = 41):
+    """The learned V(., 0) on planes through the origin, each beside the reference points' errors in its coordinates.
+
+    * ``sol``: a solution with ``value`` and ``system`` (e.g. a loaded checkpoint).
+    * ``planes``: pairs (i, j) of coordinates, one row of two panels per pair; the others are held at 0.
+    * ``points``: (N, n) reference states, drawn by their coordinates i and j (projected, not on the plane).
+    * ``errors``: (N,) the error at each of them, e.g. (V - V_ref) / max V_ref; a symmetric colour scale.
+    * ``labels``: the names of the n coordinates (mathtext), for the axes.
+    * ``points_per_dim``: mesh points along each axis of a plane.
+    """
+    points, errors = np.asarray(points, dtype=float), np.asarray(errors, dtype=float)
+    fig, axes = plt.subplots(len(planes), 2, figsize=(WIDTH, 3.1 * len(planes)), squeeze=False)
+    top = float(np.abs(errors).max()) or 1.0
+    for (i, j), (left, right) in zip(planes, axes):
+        x1, x2, pts = slice_mesh(sol.system, (i, j), 0.0, points_per_dim)
+        v = np.asarray(sol.value(pts), dtype=float).reshape(x1.shape)
+        cs = left.contourf(x1, x2, v, levels=12, cmap=CMAP)
+        left.contour(x1, x2, v, levels=cs.levels, colors="k", linewidths=0.4, alpha=0.5)
+        fig.colorbar(cs, ax=left, format="%.2g")
+        left.set_title(r"$\hat V(x,0)$, others $=0$")
+        sc = right.scatter(
+            points[:, i], points[:, j], c=errors, s=14, cmap=DIVERGING, vmin=-top, vmax=top, edgecolors="none"
+        )
+        fig.colorbar(sc, ax=right, format="%.1g")
+        right.set_title(r"$(\hat V-V_{\rm ref})/\max V_{\rm ref}$ at its states")
+        for ax in (left, right):
+            ax.set_xlim(*sol.system.domain[i])
+            ax.set_ylim(*sol.system.domain[j])
+            ax.set_xlabel(labels[i])
+            ax.set_ylabel(labels[j], labelpad=0)
+    fig.tight_layout()
+    return fig
+
+
+def manoeuvres(cases, state_labels, control_labels, t_max=None):
+    """Closed-loop trajectories (solid) against optimal ones (dashed): per case a row of states and controls.
+
+    * ``cases``: one dict per row: ``title``, and ``learned`` and ``optimal``, each a tuple (t, x, u) with t
+      (K,), x (K, k) the states to draw, u (K, m) the controls.
+    * ``state_labels``, ``control_labels``: the names of the k states and m controls (mathtext), one colour each.
+    * ``t_max``: the last time shown; None: the longest run.
+    """
+    fig, axes = plt.subplots(len(cases), 2, figsize=(WIDTH, 2.9 * len(cases) + 0.5), squeeze=False, sharex=True)
+    for case, (left, right) in zip(cases, axes):
+        for name, style in (("learned", "-"), ("optimal", "--")):
+            t, x, u = (np.asarray(a, dtype=float) for a in case[name])
+            for k in range(x.shape[1]):
+                left.plot(t, x[:, k], style, color=f"C{k}", lw=1.3)
+            for k in range(u.shape[1]):
+                right.plot(t, u[:, k], style, color=f"C{k + x.shape[1]}", lw=1.3)
+        left.set_title(f"{case['title']}: states")
+        right.set_title(f"{case['title']}: controls")
+        for ax in (left, right):
+            ax.grid(alpha=0.3)
+            ax.axhline(0, color="k", lw=0.6)
+            if t_max is not None:
+                ax.set_xlim(0, t_max)
+    for ax in axes[-1]:
+        ax.set_xlabel("$t$ (s)")
+    handles = [plt.Line2D([], [], color="k", ls=s, label=n) for n, s in (("learned", "-"), ("optimal", "--"))]
+    handles += [plt.Line2D([], [], color=f"C{k}", label=lab) for k, lab in enumerate(state_labels)]
+    handles += [
+        plt.Line2D([], [], color=f"C{k + len(state_labels)}", label=lab) for k, lab in enumerate(control_labels)
+    ]
+    fig.legend(handles=handles, loc="lower center", ncol=4, frameon=False, handlelength=1.6, columnspacing=1.0)
+    fig.tight_layout(rect=(0, 0.5 / (2.9 * len(cases) + 0.5) + 0.04, 1, 1))
+    return fig
+
+
+def against_dimension(rows, fits: dict | None = None):
+    """Errors (left) and training wall time (right) against the state dimension n, log-log, one colour per system.
+
+    * ``rows``: dicts with ``system``, ``n``, ``value_rel_error``, ``grad_mean_rel_error`` and ``wall_s``.
+    * ``fits``: system -> (slope, intercept) of log(wall time) against log(n), drawn as a dotted line marked
+      with its power of n.
+    """
+    systems = list(dict.fromkeys(r["system"] for r in rows))
+    fig, (err, wall) = plt.subplots(1, 2, figsize=(WIDTH, 3.6))
+    for k, name in enumerate(systems):
+        own = sorted((r for r in rows if r["system"] == name), key=lambda r: r["n"])
+        n = np.array([r["n"] for r in own], dtype=float)
+        err.loglog(n, [r["value_rel_error"] for r in own], "o-", color=f"C{k}", label=f"{name}: value")
+        err.loglog(n, [r["grad_mean_rel_error"] for r in own], "s--", color=f"C{k}", mfc="none", label=f"{name}: grad")
+        wall.loglog(n, [r["wall_s"] for r in own], "o-", color=f"C{k}")
+        if fits and name in fits:
+            slope, intercept = fits[name]
+            wall.loglog(n, np.exp(intercept) * n**slope, ":", color=f"C{k}", lw=1.2)
+            wall.annotate(
+                f"$n^{{{slope:.2f}}}$",
+                (n[-1], np.exp(intercept) * n[-1] ** slope),
+                xytext=(-4, 6),
+                textcoords="offset points",
+                ha="right",
+                color=f"C{k}",
+            )
+    err.set_ylabel("relative error")
+    wall.set_ylabel("training wall time (s)")
+    for ax in (err, wall):
+        ax.set_xlabel("state dimension $n$")
+        ns = sorted({r["n"] for r in rows})
+        ax.set_xticks(ns, [str(v) for v in ns])
+        ax.xaxis.set_minor_locator(mpl.ticker.NullLocator())
+        ax.grid(alpha=0.3, which="both")
+    fig.legend(*err.get_legend_handles_labels(), loc="lower center", ncol=2, frameon=False, handlelength=1.8)
+    fig.tight_layout(rect=(0, 0.17, 1, 1))
     return fig
