@@ -135,6 +135,7 @@ def main(argv=None) -> int:
     p.add_argument("--skip-finite", action="store_true")
     p.add_argument("--save", action="store_true", help="store the chains under ARTIFACTS/checkpoints/")
     p.add_argument("--artifacts", type=Path, default=ARTIFACTS, help="where references and checkpoints live")
+    p.add_argument("--note", default="", help="a sentence on the conditions of the run, printed under the header")
     args = parse(p, argv)
     system = ph.systems.rigid_body()
     progress = not args.no_progress
@@ -223,6 +224,7 @@ def table(meta: dict, result: dict, args) -> str:
         f"{meta['reference']['points']} converged Pontryagin BVPs at seeded uniform states of Omega "
         f"({meta['reference']['wall_s']:.0f} s to compute; their open-loop controls re-integrated give the same "
         f"cost to {meta['reference']['replay_max_rel']:.0e}).",
+        *([args.note] if args.note else []),
         "",
         "## Infinite horizon",
         "",
