@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     p.add_argument("--points", type=int, default=None, help="LM points per iteration (default: the rule's)")
     p.add_argument("--step", type=float, default=4.0, help="the stage length")
     p.add_argument("--ratio", type=float, default=1e-6, help="stop at E / E(V = 0) <= this")
-    p.add_argument("--max-horizon", type=float, default=12.0)
+    p.add_argument("--max-horizon", type=float, default=16.0)
     p.add_argument("--max-time", type=float, default=1800.0, help="stop extending after this many seconds")
     p.add_argument(
         "--terminal",
