@@ -64,6 +64,8 @@ class TrainConfig:
     * ``ansatz``: enforce v(x, T) = phi(x) and v(0, t) = 0 exactly (:class:`~pinnhjb.pinn.FiniteHorizonValue`);
       False: they are the soft terms MSE_b and MSE_in of the loss :eq:`eq-mse`.
     * ``dtype``: ``"float32"`` or ``"float64"``.
+    * ``flat_origin``: under the ansatz, also build ``grad_x v(0, t) = 0`` into the network
+      (:class:`~pinnhjb.pinn.FiniteHorizonValue`), so the learned policy vanishes at the origin.
 
     Data:
 
@@ -97,6 +99,7 @@ class TrainConfig:
     activation: str = "tanh"
     ansatz: bool = True
     dtype: str = "float64"
+    flat_origin: bool = False
     sampling: str = "resample"
     batch_size: int = 2000
     pool_size: int = 40000
@@ -131,6 +134,10 @@ class TrainConfig:
                     "a number of seconds > 0 or None",
                 ),
                 "ansatz": (isinstance(self.ansatz, bool), "True or False"),
+                "flat_origin": (
+                    isinstance(self.flat_origin, bool) and (self.ansatz or not self.flat_origin),
+                    "True or False (True needs ansatz=True)",
+                ),
                 "warm_start": (isinstance(self.warm_start, bool), "True or False"),
                 "activation": (
                     isinstance(self.activation, str) and self.activation in ACTIVATIONS,
@@ -215,8 +222,15 @@ class TrainConfig:
         return replace(self, phases=tuple(p for p in self.phases if p.name != name))
 
     def to_dict(self) -> dict:
-        """The config as plain data (phases as dicts with their names), as checkpoints store it."""
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "phases"}
+        """The config as plain data (phases as dicts with their names), as checkpoints store it.
+
+        A field added after checkpoints were first stored (``flat_origin``) is written only when it differs from
+        its default, so every config stored before it reads back exactly as it was written."""
+        d = {
+            f.name: getattr(self, f.name)
+            for f in fields(self)
+            if f.name != "phases" and not (f.name in _ADDED_LATER and getattr(self, f.name) == f.default)
+        }
         d["phases"] = [p.to_dict() for p in self.phases]
         return d
 
@@ -264,6 +278,9 @@ def _refuse_flat_fields(changes: dict) -> None:
                     f"config.with_phase({name!r}, {field}=...) or phases=(...) (pinnhjb.optimizers)"
                 )
 
+
+#: Fields added after checkpoints were first stored: :meth:`TrainConfig.to_dict` writes them only when set.
+_ADDED_LATER = ("flat_origin",)
 
 #: From this state dimension on, the default recipe widens its network (:func:`default_network`).
 WIDE_FROM = 6

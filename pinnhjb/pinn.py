@@ -177,6 +177,8 @@ class FiniteHorizonValue(_Scaled):
     * ``terminal_cost``: phi, a module such as :class:`ZeroTerminalCost`; None: phi = 0.
     * ``width``, ``depth``, ``activation``: the :class:`MLP`.
     * ``ansatz``: build the terminal and origin conditions into the network.
+    * ``flat_origin``: under the ansatz, also build ``grad_x v(0, t) = 0`` into it (the correction loses its linear
+      part at the origin, ``x' grad_x N(0, t)``), so the policy vanishes at the origin when phi's gradient does.
     """
 
     def __init__(
@@ -189,6 +191,7 @@ class FiniteHorizonValue(_Scaled):
         depth: int = 3,
         activation: str = "tanh",
         ansatz: bool = True,
+        flat_origin: bool = False,
     ):
         super().__init__(train_domain)
         if not horizon > 0:
@@ -196,6 +199,9 @@ class FiniteHorizonValue(_Scaled):
         self.n = n
         self.horizon = float(horizon)
         self.ansatz = bool(ansatz)
+        self.flat_origin = bool(flat_origin)
+        if self.flat_origin and not self.ansatz:
+            raise ValueError("flat_origin builds grad v(0, t) = 0 into the ansatz: it needs ansatz=True")
         self.terminal_cost = ZeroTerminalCost() if terminal_cost is None else terminal_cost
         self.net = MLP(n + 1, width, depth, activation)
 
@@ -215,11 +221,16 @@ class FiniteHorizonValue(_Scaled):
         return self.net(self.net_inputs(x, t))
 
     def correction(self, x: Tensor, t: Tensor) -> Tensor:
-        """``v - phi`` under the ansatz, ``(T - t)/T (N(x, t) - N(0, t))``; the bare N(x, t) otherwise."""
+        """``v - phi`` under the ansatz, ``(T - t)/T (N(x, t) - N(0, t))`` (minus ``x' grad_x N(0, t)`` with
+        ``flat_origin``); the bare N(x, t) otherwise."""
         if not self.ansatz:
             return self.raw(x, t)
         s = (self.horizon - t) / self.horizon
-        return s * (self.raw(x, t) - self.raw(torch.zeros_like(x), t))
+        zero = torch.zeros_like(x)
+        out = self.raw(x, t) - self.raw(zero, t)
+        if self.flat_origin:  # forward mode: composes with autograd and with torch.func's vmap, grad, jacrev
+            out = out - torch.func.jvp(lambda z: self.raw(z, t), (zero,), (x,))[1]
+        return s * out
 
     def chain(self) -> list[FiniteHorizonValue]:
         """This stage and the earlier stages its value depends on (through terminal costs V_prev(., 0)), newest
@@ -274,8 +285,9 @@ class FiniteHorizonValue(_Scaled):
         """
         x = x.detach().requires_grad_(True)
         t = t.detach().requires_grad_(True)
-        if not self.ansatz:
-            gx, gt = torch.autograd.grad(self.raw(x, t).sum(), (x, t), create_graph=True)
+        if not self.ansatz or self.flat_origin:  # the generic route: autograd through the correction
+            out = self.raw(x, t) if not self.ansatz else self.correction(x, t)
+            gx, gt = torch.autograd.grad(out.sum(), (x, t), create_graph=True)
             return gx, gt
         if origin_times is None:
             origin_times, origin_index = t, torch.arange(t.shape[0], device=t.device)

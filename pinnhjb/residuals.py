@@ -223,10 +223,13 @@ class FiniteHorizonHJB(Residual):
 
         return residual
 
-    def jacobian(self) -> Callable[..., tuple[Tensor, Tensor]]:
+    def jacobian(self) -> Callable[..., tuple[Tensor, Tensor]] | None:
         """The batched twin of :meth:`point_residual`: (r, J) by :func:`~pinnhjb.jacobian.residual_jacobian`, with
-        N(x, t) and N(0, t) of the ansatz as two network rows per point."""
+        N(x, t) and N(0, t) of the ansatz as two network rows per point; None for a ``flat_origin`` model (LM then
+        differentiates :meth:`point_residual`)."""
         model, n = self.model, self.system.n
+        if getattr(model, "flat_origin", False):  # its mixed derivative at the origin: LM's vmap(jacrev) route
+            return None
 
         def jacobian(theta, x, t, dphi, fx, gx, qx):
             N = x.shape[0]

@@ -221,6 +221,7 @@ class FiniteHorizonSolver(_Solver):
             depth=cfg.depth,
             activation=cfg.activation,
             ansatz=cfg.ansatz,
+            flat_origin=cfg.flat_origin,
         )
         model = model.to(device=self.device, dtype=self.dtype)
         if init is not None and cfg.warm_start:

@@ -374,13 +374,14 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: its stored config is not valid: {exc}") from exc
     if config is not None:
-        arch = ("width", "depth", "activation", "ansatz")
+        arch = ("width", "depth", "activation", "ansatz", "flat_origin")
         diff = {k: (getattr(stored, k), getattr(config, k)) for k in arch if getattr(stored, k) != getattr(config, k)}
         if diff:
             raise CheckpointError(f"architecture mismatch (stored, requested): {diff}")
     dev = resolve_device(device)
     dtype = DTYPES[ckpt["dtype"]]
     net_kw = dict(width=stored.width, depth=stored.depth, activation=stored.activation, ansatz=stored.ansatz)
+    fin_kw = dict(net_kw, flat_origin=stored.flat_origin)
 
     eps = _perturbation()
     perturb = None if eps is None else (eps, torch.Generator().manual_seed(PERTURB_SEED))
@@ -404,7 +405,7 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
         stages: list[Stage] = []
         for i, st in enumerate(ckpt["stages"]):
             phi = terminal if i == 0 else ValueTerminalCost(stages[-1].model)
-            model = FiniteHorizonValue(system.n, st["length"], system.train_domain, phi, **net_kw).to(dev, dtype)
+            model = FiniteHorizonValue(system.n, st["length"], system.train_domain, phi, **fin_kw).to(dev, dtype)
             _load_state(model, _checked_state(st["state"], f"stage {i + 1}", path, perturb), f"stage {i + 1}")
             model = model.eval().requires_grad_(False)
             stages.append(

@@ -143,3 +143,28 @@ def test_correction_derivatives_match_autograd_of_the_value(shared):
     dx, dt = model.correction_derivatives(x, t, *((times, index) if shared else (None, None)))
     torch.testing.assert_close(dx, gx, rtol=0, atol=1e-12)
     torch.testing.assert_close(dt, gt, rtol=0, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------ flat_origin
+def test_flat_origin_pins_the_gradient_at_the_origin():
+    """flat_origin: v(0, t) = 0 and grad_x v(0, t) = grad phi(0) = 0 at every t, the terminal condition still exact,
+    the network still free elsewhere; its training derivatives (the generic route) agree with autograd of v."""
+    phi = QuadraticTerminalCost(P_PHI)
+    model = model64(1.3, phi, flat_origin=True)
+    plain = model64(1.3, phi)
+    zero = torch.zeros(6, 2, dtype=torch.float64)
+    t = torch.linspace(0, 1.3, 6, dtype=torch.float64)
+    _, g0, _ = value_and_gradients(model, zero, t)
+    _, g0_plain, _ = value_and_gradients(plain, zero, t)
+    assert model(zero, t).abs().max() <= 1e-14 and g0.abs().max() <= 1e-13
+    assert g0_plain.abs().max() > 1e-3  # without it the gradient at the origin is free
+    x = states()
+    np.testing.assert_allclose(model(x, 1.3).detach().numpy(), phi(x).numpy(), rtol=0, atol=1e-14)
+    assert (model(x, 0.0) - phi(x)).abs().max() > 1e-3
+    ts = torch.rand(x.shape[0], dtype=torch.float64) * 1.3
+    _, gx, gt = value_and_gradients(model, x, ts)
+    dx, dt = model.correction_derivatives(x, ts)
+    torch.testing.assert_close(dx + 2 * x @ torch.as_tensor(P_PHI), gx, rtol=0, atol=1e-12)
+    torch.testing.assert_close(dt, gt, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="needs ansatz=True"):
+        model64(1.0, flat_origin=True, ansatz=False)
