@@ -293,10 +293,10 @@ def default_network(n: int) -> tuple[int, int, int]:
 
     Below :data:`WIDE_FROM` (the paper's systems, n <= 3, where the recipe was tuned) a 3 x 24 network (about
     1300 weights) with 1500 LM points (700 coarse). From n = 6 on, 3 x 40 (about 3600 weights) with 4500 points
-    (2000 coarse), so that the last LM level still has more points than weights. Measured on the 6-D rigid body
-    (``benchmarks/rigid_body.py``): with 3 x 24 the value error levels off near 2% whatever the horizon; 3 x 40
-    goes below 1% at three to four times the cost per stage. A Levenberg-Marquardt step with more points than
-    weights costs about N P^2, so the rule stops there on CPUs.
+    (2000 coarse), so that the last LM level still has more points than weights. Chosen by measurement on the 6-D
+    rigid body (``benchmarks/rigid_body.py``; its results page and chapter 8 give the numbers): the 3 x 24 network's
+    error levels off as the horizon grows, the 3 x 40 one goes lower at a few times the cost per stage. A
+    Levenberg-Marquardt step with more points than weights costs about N P^2, so the rule stops there on CPUs.
     """
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"the state dimension must be an integer >= 1; got {n!r}")
