@@ -7,7 +7,11 @@ the value are measured on ``--points`` seeded uniform states of Omega:
 
 * max abs(V - V*) / max V* and the mean relative error of grad V;
 * the training wall time, and a least-squares exponent of wall time against n (log-log) per family;
-* at the dimensions ``--compare``, our first-order recipe ``adam_lbfgs`` beside the default, on both systems.
+* at the dimensions ``--compare``, our first-order recipe ``adam_lbfgs`` and DeepXDE beside the default, on both
+  systems. DeepXDE (``deepxde``) is the chain a user would build with its API (:mod:`_deepxde`: 3 x 100 in float32,
+  ``adam_lbfgs``'s Adam and L-BFGS budgets a stage, soft conditions), extended with the same stages and the same
+  stopping rule on E as ours; it runs in the benchmarks' own environment (``benchmarks/.venv``, see
+  ``requirements-deepxde.txt``), and its rows read "not installed" elsewhere.
 
 Every (system, n, recipe) is an independent run: ``--workers N`` runs N at a time in local processes and
 ``--scheduler tcp://HOST:PORT`` on a Dask cluster (:func:`pinnhjb.executor.map_runs`), with the same rows as a
@@ -15,6 +19,8 @@ serial run at the same ``--threads``.
 
     .venv/bin/python benchmarks/dimension.py                       # ladder n = 2 ... 16, converse n = 2 ... 12
     .venv/bin/python benchmarks/dimension.py --ladder 2,4 --converse 4 --compare "" --out /tmp/dim
+    benchmarks/.venv/bin/python benchmarks/dimension.py --ladder 6 --converse 6 --against deepxde --width 24 \
+        --workers 2 --threads 1 --out benchmarks/results/repeats/deepxde-n6      # DeepXDE at n = 6, its venv
 
 Writes ``dimension.md``, ``dimension.json`` (config, seed, versions, wall times) and the figure
 ``dimension.png`` (error and wall time against n) to ``benchmarks/results/``.
@@ -24,15 +30,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 import warnings
 
+import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/<name>.py
 import numpy as np
 import torch
-from _common import parse  # benchmarks/_common.py: the scripts run as benchmarks/<name>.py
+from _common import parse
 
 import pinnhjb as ph
 from pinnhjb.executor import map_runs
+from pinnhjb.metrics import infinite_horizon_residual
 from pinnhjb.storage import provenance
 
 
@@ -54,14 +63,17 @@ def true_errors(system, sol, points: int, seed: int) -> dict:
 
 
 BUILDERS = {"lq_ladder": lambda n: ph.systems.lq_ladder(n // 2), "converse": ph.systems.converse}
+RECIPES = ("default", "adam_lbfgs", "deepxde")  # pinnhjb's presets, and DeepXDE
 
 
 def run(task: dict) -> dict:
     """One (system, n, recipe) run: train by extension until the E bound or the horizon cap, then the true errors.
 
-    * ``task``: ``system`` (a key of :data:`BUILDERS`), ``n``, ``recipe`` (a preset name), ``step``, ``ratio``,
-      ``max_horizon``, ``points``, ``seed``, ``progress``.
+    * ``task``: ``system`` (a key of :data:`BUILDERS`), ``n``, ``recipe`` (one of :data:`RECIPES`), ``step``,
+      ``ratio``, ``max_horizon``, ``points``, ``seed``, ``progress``.
     """
+    if task["recipe"] == "deepxde":
+        return run_deepxde(task)
     system, step = BUILDERS[task["system"]](task["n"]), task["step"]
     config = ph.TrainConfig.preset(task["recipe"], dimension=system.n)
     if task["width"] is not None:
@@ -75,17 +87,64 @@ def run(task: dict) -> dict:
         while sol.metrics["E"] > task["ratio"] * zero and sol.horizon < task["max_horizon"] - 1e-9:
             sol = solver.extend(sol, to=sol.horizon + step)
     wall = time.perf_counter() - start
+    weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
+    measured = dict(T=sol.horizon, stages=len(sol.stages), E_ratio=sol.metrics["E"] / zero, wall_s=wall)
+    return _row(task, system, weights, measured, sol)
+
+
+class _DeepXDEValue:
+    """V(., 0) of a DeepXDE chain (a float64 torch callable) with the ``value``/``gradient`` of a Solution."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+    def value(self, x: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return self.fn(torch.as_tensor(x)).numpy()
+
+    def gradient(self, x: np.ndarray) -> np.ndarray:
+        xg = torch.as_tensor(x).clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(self.fn(xg).sum(), xg)
+        return g.numpy()
+
+
+def run_deepxde(task: dict) -> dict:
+    """:func:`run` for DeepXDE: the chain of :func:`_deepxde.chain` with ``adam_lbfgs``'s network and budgets,
+    stopped by the same rule on E (measured by the same function as ours); a row with ``status`` "not installed"
+    where DeepXDE is not importable."""
+    system, step = BUILDERS[task["system"]](task["n"]), task["step"]
+    dde, missing = dxd.import_deepxde()
+    if dde is None:
+        return {"system": system.name, "recipe": "deepxde", "n": system.n, "m": system.m, "status": missing}
+    torch.set_default_device(None)  # DeepXDE's import may set CUDA: this benchmark is CPU
+    config = ph.TrainConfig.preset("adam_lbfgs")
+    ratios = []
+
+    def until(fn, T):
+        metrics = infinite_horizon_residual(system, fn)
+        ratios.append(metrics["E"] / metrics["E_zero"])
+        return ratios[-1] <= task["ratio"] or T >= task["max_horizon"] - 1e-9
+
+    lengths = [step] * math.ceil(task["max_horizon"] / step - 1e-9)
+    start = time.perf_counter()
+    model, length, stages = dxd.chain(dde, system, config, lengths, task["seed"], until)
+    wall = time.perf_counter() - start
+    weights = sum(p.numel() for p in model.net.parameters())
+    measured = dict(T=stages[-1]["T"], stages=len(stages), E_ratio=ratios[-1], wall_s=wall)
+    return _row(task, system, weights, measured, _DeepXDEValue(dxd.value_fn(model.net, length)))
+
+
+def _row(task: dict, system, weights: int, measured: dict, sol) -> dict:
+    """One run's row: what it was, what it measured (``measured``: T, stages, E_ratio, wall_s), and the true
+    errors of ``sol`` (printed too)."""
     row = {
         "system": system.name,
         "recipe": task["recipe"],
         "n": system.n,
         "m": system.m,
-        "weights": sum(p.numel() for p in sol.stages[0].model.parameters()),  # the first has no terminal network
-        "T": sol.horizon,
-        "step": step,
-        "stages": len(sol.stages),
-        "E_ratio": sol.metrics["E"] / zero,
-        "wall_s": wall,
+        "weights": weights,
+        "step": task["step"],
+        **measured,
         **true_errors(system, sol, task["points"], task["seed"]),
     }
     print(
@@ -103,6 +162,12 @@ def exponent(rows: list[dict]) -> float | None:
     return float(np.polyfit(np.log([r["n"] for r in rows]), np.log([r["wall_s"] for r in rows]), 1)[0])
 
 
+def _deepxde_version() -> str | None:
+    """DeepXDE's version where it is importable here (the runs import it themselves)."""
+    dde, _ = dxd.import_deepxde()
+    return None if dde is None else dde.__version__
+
+
 def figure(rows: list[dict], path) -> None:
     """Error and wall time against n, one line per (system, recipe), log-log: ``dimension.png``."""
     import matplotlib
@@ -111,7 +176,7 @@ def figure(rows: list[dict], path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax_e, ax_t) = plt.subplots(1, 2, figsize=(9, 3.6), layout="constrained")
-    for (name, recipe), marker in zip(sorted({(r["system"], r["recipe"]) for r in rows}), "osD^v"):
+    for (name, recipe), marker in zip(sorted({(r["system"], r["recipe"]) for r in rows}), "osD^v<>ph"):
         sel = sorted((r for r in rows if (r["system"], r["recipe"]) == (name, recipe)), key=lambda r: r["n"])
         n = [r["n"] for r in sel]
         ax_e.loglog(n, [r["value_rel_error"] for r in sel], marker=marker, label=f"{name} ({recipe})")
@@ -128,7 +193,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--ladder", default="2,4,6,8,12,16", help="state dimensions n of the LQ ladder (even)")
     p.add_argument("--converse", default="2,4,6,8,12", help="state dimensions n of the converse system (even)")
-    p.add_argument("--compare", default="6", help="dimensions at which adam_lbfgs runs too (both systems)")
+    p.add_argument("--compare", default="6", help="dimensions at which --against run too (both systems)")
+    p.add_argument("--against", default="adam_lbfgs,deepxde", help="the recipes beside the default at --compare")
     p.add_argument("--width", type=int, default=None, help="the default recipe's width at every n (default: its rule)")
     p.add_argument("--step", type=float, default=2.0, help="the stage length (the ladder)")
     p.add_argument("--converse-step", type=float, default=0.5, help="the stage length of the converse system")
@@ -143,15 +209,18 @@ def main(argv=None) -> int:
     if any(n % 2 for ns in sizes.values() for n in ns):
         p.error("every n must be even (the ladder has n = 2k; the converse system m = n/2 inputs)")
     compare = {int(n) for n in args.compare.split(",") if n}
+    against = [r for r in args.against.split(",") if r]
+    if unknown := set(against) - set(RECIPES[1:]):
+        p.error(f"--against: unknown recipe(s) {sorted(unknown)}; choose from {', '.join(RECIPES[1:])}")
     common = dict(ratio=args.ratio, max_horizon=args.max_horizon, points=args.points, seed=args.seed)
-    width = {"default": args.width, "adam_lbfgs": None}
+    width = {"default": args.width, "adam_lbfgs": None, "deepxde": None}
     common["progress"] = not args.no_progress and args.workers is None and args.scheduler is None
     steps = {"lq_ladder": args.step, "converse": args.converse_step}
     tasks = [
         dict(common, system=name, n=n, recipe=recipe, step=steps[name], width=width[recipe])
         for name, ns in sizes.items()
         for n in ns
-        for recipe in ["default"] + (["adam_lbfgs"] if n in compare else [])
+        for recipe in ["default"] + (against if n in compare else [])
     ]
     rows = map_runs(
         run,
@@ -173,21 +242,28 @@ def main(argv=None) -> int:
         "max_horizon": args.max_horizon,
         "points": args.points,
         "compare": sorted(compare),
+        "against": against,
         "width": args.width,
         "workers": args.workers,
         "config": ph.TrainConfig.preset("default").to_dict(),
         "configs": {r: ph.TrainConfig.preset(r).to_dict() for r in ("default", "adam_lbfgs")},
+        "deepxde": _deepxde_version() if "deepxde" in against else None,
     }
+    missing = [r for r in rows if "status" in r]
+    rows = [r for r in rows if "status" not in r]
     default = [r for r in rows if r["recipe"] == "default"]
     fits = {name: exponent([r for r in default if r["system"] == name]) for name in sizes}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "dimension.json").write_text(json.dumps({"meta": meta, "rows": rows, "exponents": fits}))
+    record = {"meta": meta, "rows": rows, "exponents": fits, "not_run": missing}
+    (args.out / "dimension.json").write_text(json.dumps(record))
+    dx_version = f", DeepXDE {meta['deepxde']}" if meta["deepxde"] else ""
     lines = [
         "# Error and cost against the dimension (generated by `benchmarks/dimension.py`; do not edit)",
         "",
         f"The default recipe (one network per system, "
-        f"{f'3 x {args.width} at every n' if args.width else 'widths by its rule'}; `adam_lbfgs` beside it at n = "
-        f"{args.compare or 'none'}), "
+        f"{f'3 x {args.width} at every n' if args.width else 'widths by its rule'}; "
+        f"{' and '.join(f'`{r}`' for r in against) or 'nothing'} beside it at n = {args.compare or 'none'}"
+        f"{dx_version}), "
         f"stages of {args.step:g} s (the converse system "
         f"{args.converse_step:g} s: its open loop is fast and unstable) until E / E(V = 0) <= "
         f"{args.ratio:g} or T = {args.max_horizon:g}, seed {args.seed}, {args.threads} thread(s) per run, "
@@ -204,6 +280,7 @@ def main(argv=None) -> int:
             f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['weights']} | {r['step']:g} | {r['T']:g} | "
             f"{r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | {r['grad_mean_rel_error']:.1e} | {r['wall_s']:.0f} |"
         )
+    lines += [f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['status']} |||||||" for r in missing]
     lines.append("")
     for name, slope in fits.items():
         if slope is not None:

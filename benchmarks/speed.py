@@ -10,7 +10,7 @@ One run trains, in this one process, one after the other (so every method sees t
 * ``adam_lbfgs``     our first-order recipe (``TrainConfig.preset("adam_lbfgs")``: 3 x 100 in float32, Adam then
                      L-BFGS), same code and chain: the optimiser's share.
 * ``deepxde``        DeepXDE (PyTorch backend) in its natural set-up: the whole horizon in one stage on
-                     ``GeometryXTime(Rectangle, TimeDomain)`` in reversed time s = T - t, the terminal condition
+                     ``GeometryXTime(Hypercube, TimeDomain)`` in reversed time s = T - t, the terminal condition
                      V(x, s=0) = 0 and V(0, s) = 0 soft ``PointSetBC`` s; the total optimiser
                      budget of the ``adam_lbfgs`` chain (8 x Adam steps, then 8 x L-BFGS iterations).
 * ``deepxde-chain``  DeepXDE on an extension chain, built by hand with DeepXDE's API: every stage a
@@ -57,7 +57,7 @@ import time
 import traceback
 from pathlib import Path
 
-import numpy as np
+import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/<name>.py
 import torch
 
 import pinnhjb as ph
@@ -286,53 +286,6 @@ def run_pinnhjb(name: str, method: str, step: float, args, system) -> Run:
 # ---------------------------------------------------------------------- DeepXDE
 
 
-def import_deepxde():
-    """(deepxde, None) with the PyTorch backend, or (None, why not): not installed, or another backend."""
-    os.environ.setdefault("DDE_BACKEND", "pytorch")
-    try:
-        import deepxde as dde  # optional: installed only in benchmarks/.venv
-    except ImportError as exc:
-        print(f"DeepXDE is not importable ({exc}); its methods are marked 'not installed'", flush=True)
-        return None, "not installed"
-    if dde.backend.backend_name != "pytorch":
-        print(f"DeepXDE uses backend {dde.backend.backend_name!r}, not pytorch; set DDE_BACKEND=pytorch", flush=True)
-        return None, f"unavailable (DeepXDE backend {dde.backend.backend_name}, not pytorch)"
-    return dde, None
-
-
-def _dde_net(dde, system, length: float, width: int, depth: int, activation: str):
-    """width x depth tanh FNN on (x1, x2, s) with the same input scaling as pinnhjb's network: x from the training box
-    and s from [0, length] to [-1, 1], via DeepXDE's ``apply_feature_transform``."""
-    net = dde.nn.FNN([system.n + 1] + [width] * depth + [1], activation, "Glorot normal")
-    box = torch.as_tensor(system.train_domain, dtype=torch.float32)
-    center = torch.cat([(box[:, 0] + box[:, 1]) / 2, torch.tensor([length / 2])])
-    half = torch.cat([(box[:, 1] - box[:, 0]) / 2, torch.tensor([length / 2])])
-    net.apply_feature_transform(lambda z: (z - center.to(z)) / half.to(z))
-    return net
-
-
-def _dde_value_fn(net, s_end: float):
-    """V(x, t=0) = net(x, s=s_end) in reversed time, float64 in and out (the net is float32, on its device)."""
-    p = next(net.parameters())
-
-    def fn(x):
-        xd = x.to(p.device, p.dtype)
-        z = torch.cat([xd, torch.full((x.shape[0], 1), s_end, dtype=p.dtype, device=p.device)], dim=1)
-        return net(z).squeeze(-1).to(x.device, x.dtype)
-
-    return fn
-
-
-def _dde_pde(dde, system):
-    """The finite-horizon HJB in reversed time s = T - t: dV/ds = min_u H(x, grad_x V) (pinnhjb's Hamiltonian)."""
-
-    def pde(z, y):
-        dy = dde.grad.jacobian(y, z, i=0)  # (N, n + 1): grad_x V, dV/ds
-        return dy[:, -1:] - system.hamiltonian_min(z[:, :-1], dy[:, :-1]).unsqueeze(-1)
-
-    return pde
-
-
 class _DdeCheckpoint:
     """Factory for a DeepXDE callback that checks E every ``every`` batches, with the training clock paused."""
 
@@ -395,10 +348,8 @@ def train_deepxde(name: str, method: str, step: float | None, args, system, dde)
         "depth": cfg.depth,
     }
     clock = Clock()
-    lo, hi = system.train_domain[:, 0].tolist(), system.train_domain[:, 1].tolist()
-    pde = _dde_pde(dde, system)
-    n_soft = lambda points: max(1, points * cfg.n_boundary // max(cfg.n_flow, 1))  # noqa: E731, as pinnhjb's soft terms
-    nb_adam, nb_lbfgs = n_soft(cfg.batch_size), n_soft(lbfgs.points)
+    pde = dxd.pde(dde, system)
+    nb_adam, nb_lbfgs = dxd.soft_points(cfg, cfg.batch_size), dxd.soft_points(cfg, lbfgs.points)
     start = time.perf_counter()
     net = prev = None
     T_done = 0.0
@@ -406,7 +357,7 @@ def train_deepxde(name: str, method: str, step: float | None, args, system, dde)
     def check(**where):
         clock.stop()
         t0 = time.perf_counter()
-        metrics = measure(system, _dde_value_fn(net, length))
+        metrics = measure(system, dxd.value_fn(net, length))
         run.eval_time += time.perf_counter() - t0
         setup = time.perf_counter() - start - clock.total - run.eval_time
         run.checkpoint(clock.total, setup, metrics, **where)
@@ -422,31 +373,14 @@ def train_deepxde(name: str, method: str, step: float | None, args, system, dde)
 
     for k, length in enumerate(lengths):
         dde.config.set_random_seed(args.seed + k)
-        geom = dde.geometry.GeometryXTime(dde.geometry.Rectangle(lo, hi), dde.geometry.TimeDomain(0.0, length))
-        net = _dde_net(dde, system, length, cfg.width, cfg.depth, cfg.activation)
+        geom = dxd.geometry(dde, system, length)
+        net = dxd.network(dde, system, length, cfg.width, cfg.depth, cfg.activation)
         if prev is not None:
             net.load_state_dict(prev.net.state_dict())  # warm start, as our chains
-        # V(0, s) = 0: soft, on n_origin points (mini-batches of nb per step, DeepXDE's PointSetBC batching).
-        s_origin = np.random.uniform(0.0, length, size=(cfg.n_origin, 1))
-        origin_pts = np.hstack([np.zeros((cfg.n_origin, system.n)), s_origin])
-        # Terminal condition V(x, s=0) = phi(x): phi = 0 (one stage, first stage), or phi = V_prev(x, t=0)
-        # = previous model's predict at its s_end, as a PointSetBC on n_boundary points (chain).
-        # (phi = 0 on stage 1 is a PointSetBC of zeros too: DeepXDE's IC resamples a varying number of initial
-        # points per step, which its PDEPointResampler rejects with "`num_bcs` changed".)
-        xs = np.random.uniform(lo, hi, size=(cfg.n_boundary, system.n))
-        term_pts = np.hstack([xs, np.zeros((cfg.n_boundary, 1))])
-        if prev is None:
-            term_vals = np.zeros((cfg.n_boundary, 1))
-        else:
-            term_vals = prev.predict(np.hstack([xs, np.full((cfg.n_boundary, 1), lengths[k - 1])]))
+        points = dxd.stage_points(system, cfg, length, prev, lengths[k - 1] if k else None)
 
         def bcs(nb, batched):
-            kw = {"batch_size": nb} if batched else {}
-            sl = slice(None) if batched else slice(0, nb)
-            return [
-                dde.icbc.PointSetBC(origin_pts[sl], np.zeros((len(origin_pts[sl]), 1)), **kw),
-                dde.icbc.PointSetBC(term_pts[sl], term_vals[sl], **kw),
-            ], 0
+            return dxd.point_bcs(dde, points, nb, batched), 0
 
         # ---- Adam: batch_size fresh flow points every step (PDEPointResampler), cosine decay as adam_lbfgs.
         t0 = time.perf_counter()
@@ -846,7 +780,7 @@ def main(argv=None):
     dde, dde_import, dde_missing = None, None, "not installed"
     if any(m.startswith("deepxde") for m in methods):
         t0 = time.perf_counter()
-        dde, dde_missing = import_deepxde()
+        dde, dde_missing = dxd.import_deepxde()
         dde_import = time.perf_counter() - t0
         torch.set_num_threads(args.threads)  # in case the import touched it
         torch.set_default_device(None)  # no device mode outside DeepXDE's own GPU runs (run_deepxde)

@@ -25,21 +25,16 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from .pinn import MLP
+from .pinn import ACTIVATION_DERIVATIVES, MLP
 
 Tensor = torch.Tensor
 
 __all__ = ["residual_jacobian"]
 
-_DERIVATIVES: dict[type, Callable[[Tensor, Tensor], Tensor]] = {
-    nn.Tanh: lambda h, y: 1.0 - y * y,
-    nn.Sigmoid: lambda h, y: y * (1.0 - y),
-}
-
 
 def _activation_derivative(layer: nn.Module, h: Tensor, y: Tensor) -> Tensor:
     """sigma'(h) of an elementwise activation (closed form where known, else by autograd), differentiable."""
-    known = _DERIVATIVES.get(type(layer))
+    known = ACTIVATION_DERIVATIVES.get(type(layer))
     if known is not None:
         return known(h, y)
     (d,) = torch.autograd.grad(y.sum(), h, create_graph=True)

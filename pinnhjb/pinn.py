@@ -27,7 +27,14 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
     "gelu": nn.GELU,
 }
 
+#: sigma'(h) from h and y = sigma(h), for the activations that have a closed form (the others go by autograd).
+ACTIVATION_DERIVATIVES: dict[type[nn.Module], Callable[[Tensor, Tensor], Tensor]] = {
+    nn.Tanh: lambda h, y: 1.0 - y * y,
+    nn.Sigmoid: lambda h, y: y * (1.0 - y),
+}
+
 __all__ = [
+    "ACTIVATION_DERIVATIVES",
     "MLP",
     "FiniteHorizonValue",
     "SteadyStateValue",
@@ -65,6 +72,22 @@ class MLP(nn.Module):
 
     def forward(self, z: Tensor) -> Tensor:
         return self.layers(z).squeeze(-1)
+
+    def tangent(self, z: Tensor, dz: Tensor) -> tuple[Tensor, Tensor]:
+        """The output and its derivative along ``dz`` at ``z`` (both (M, d)): forward mode, layer by layer, with
+        the closed-form derivatives of :data:`ACTIVATION_DERIVATIVES` (``torch.func.jvp`` of other activations).
+        Plain torch operations, so it composes with autograd and with torch.func's vmap, grad and jacrev; at the
+        sizes used here several times faster than ``torch.func.jvp`` of the whole network. Returns (M,), (M,)."""
+        a, da = z, dz
+        for layer in self.layers:
+            if isinstance(layer, nn.Linear):
+                a, da = layer(a), da @ layer.weight.T
+            elif type(layer) in ACTIVATION_DERIVATIVES:
+                y = layer(a)
+                a, da = y, ACTIVATION_DERIVATIVES[type(layer)](a, y) * da
+            else:
+                a, da = torch.func.jvp(layer, (a,), (da,))
+        return a.squeeze(-1), da.squeeze(-1)
 
 
 class _Scaled(nn.Module):
@@ -227,10 +250,12 @@ class FiniteHorizonValue(_Scaled):
             return self.raw(x, t)
         s = (self.horizon - t) / self.horizon
         zero = torch.zeros_like(x)
-        out = self.raw(x, t) - self.raw(zero, t)
-        if self.flat_origin:  # forward mode: composes with autograd and with torch.func's vmap, grad, jacrev
-            out = out - torch.func.jvp(lambda z: self.raw(z, t), (zero,), (x,))[1]
-        return s * out
+        if not self.flat_origin:
+            return s * (self.raw(x, t) - self.raw(zero, t))
+        # N(0, t) and x' grad_x N(0, t) in one forward-mode pass (composes with autograd and torch.func)
+        dz = torch.cat([x * self.scale_x_derivative(x), torch.zeros_like(x[:, :1])], dim=-1)
+        n_0, slope = self.net.tangent(self.net_inputs(zero, t), dz)
+        return s * (self.raw(x, t) - n_0 - slope)
 
     def chain(self) -> list[FiniteHorizonValue]:
         """This stage and the earlier stages its value depends on (through terminal costs V_prev(., 0)), newest

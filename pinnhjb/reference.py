@@ -450,6 +450,15 @@ class ReferenceGrid:
             np.savez(fh, metadata=np.array(json.dumps(meta)), **arrays)
         os.replace(tmp, path)
 
+    @property
+    def replay_error(self) -> float | None:
+        """The reference's own check: max over the converged points of abs(replay_value - value) / abs(value);
+        None without replayed costs (:func:`reference_grid`)."""
+        if self.replay_value is None:
+            return None
+        keep = np.asarray(self.converged, dtype=bool)
+        return float(np.max(np.abs(self.replay_value[keep] - self.value[keep]) / np.abs(self.value[keep])))
+
     @classmethod
     def load(cls, path) -> ReferenceGrid:
         """Read a grid that :meth:`save` wrote at ``path``."""

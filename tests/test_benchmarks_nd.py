@@ -47,6 +47,30 @@ def test_dimension_rows_are_the_same_in_workers(tmp_path):
         dimension.main([*tiny, "--out", str(tmp_path / "bad"), "--workers", "0"])
 
 
+def test_dimension_deepxde_rows_say_when_it_is_missing(tmp_path):
+    """DeepXDE beside the default at n = 2: a measured row where DeepXDE is installed (benchmarks/.venv), a row that
+    says "not installed" where it is not (the project's environment); an unknown recipe is a usage error."""
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "2", "--against", "deepxde", "--step", "0.5"]
+    tiny += ["--max-horizon", "0.5", "--points", "256", "--threads", "1", "--no-progress", "--out", str(tmp_path)]
+    bad = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "dimension.py"), *tiny, "--against", "deepxde,lbfgs"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "unknown recipe(s) ['lbfgs']" in bad.stderr
+    assert not (tmp_path / "dimension.json").exists()
+    if importlib.util.find_spec("deepxde") is not None:
+        return  # DeepXDE's own environment: a real DeepXDE run takes minutes (benchmarks/dimension.py measures it)
+    subprocess.run([sys.executable, str(BENCHMARKS / "dimension.py"), *tiny], check=True, capture_output=True)
+    record = json.loads((tmp_path / "dimension.json").read_text())
+    assert [r["recipe"] for r in record["rows"]] == ["default"]
+    assert record["not_run"] == [
+        {"system": "lq_ladder", "recipe": "deepxde", "n": 2, "m": 1, "status": "not installed"}
+    ]
+    assert "| lq_ladder | deepxde | 2 | 1 | not installed |" in (tmp_path / "dimension.md").read_text()
+
+
 def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     rigid_body = _module("rigid_body")
     args = ["--reference-points", "4", "--width", "8", "--points", "200", "--step", "0.5", "--max-horizon", "0.5"]

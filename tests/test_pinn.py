@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from pinnhjb.pinn import (
+    ACTIVATION_DERIVATIVES,
     MLP,
     FiniteHorizonValue,
     QuadraticTerminalCost,
@@ -168,3 +169,39 @@ def test_flat_origin_pins_the_gradient_at_the_origin():
     torch.testing.assert_close(dt, gt, rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="needs ansatz=True"):
         model64(1.0, flat_origin=True, ansatz=False)
+
+
+@pytest.mark.parametrize("activation", ["tanh", "sigmoid", "softplus", "silu", "gelu"])
+def test_mlp_tangent_is_forward_mode_and_composes_with_jacrev(activation):
+    """MLP.tangent (flat_origin's slope x' grad_x N(0, t)) equals torch.func.jvp of the network, with the closed-form
+    activation derivatives or jvp's for the rest, and its Jacobian in the weights by vmap(jacrev) equals autograd's
+    (the route LM takes for a flat_origin model)."""
+    torch.manual_seed(1)
+    net = MLP(3, width=7, depth=2, activation=activation).double()
+    z, dz = torch.randn(5, 3, dtype=torch.float64), torch.randn(5, 3, dtype=torch.float64)
+    out, dout = net.tangent(z, dz)
+    ref_out, ref_dout = torch.func.jvp(net, (z,), (dz,))
+    torch.testing.assert_close(out, ref_out, rtol=0, atol=1e-14)
+    torch.testing.assert_close(dout, ref_dout, rtol=0, atol=1e-13)
+    assert (type(net.layers[1]) in ACTIVATION_DERIVATIVES) == (activation in ("tanh", "sigmoid"))
+    slope = _Slope(net)
+    params = dict(slope.named_parameters())
+
+    def one(p, zi, dzi):
+        return torch.func.functional_call(slope, p, (zi[None], dzi[None]))[0]
+
+    jac = torch.func.vmap(torch.func.jacrev(one), in_dims=(None, 0, 0))(params, z, dz)
+    for name, w in params.items():
+        (expect,) = torch.autograd.grad(slope(z[2:3], dz[2:3]).sum(), w, allow_unused=True, materialize_grads=True)
+        torch.testing.assert_close(jac[name][2], expect, rtol=0, atol=1e-13)
+
+
+class _Slope(torch.nn.Module):
+    """MLP.tangent's derivative as a module's forward, for functional_call."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, z, dz):
+        return self.net.tangent(z, dz)[1]

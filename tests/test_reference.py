@@ -149,9 +149,12 @@ def test_seeded_points_match_exact_value_and_replay(quartic, tmp_path):
     assert np.all(np.abs(ref.points) <= np.abs(quartic.domain).max())
     assert np.abs(ref.value - quartic.value_star(X).numpy()).max() < 1e-5
     assert np.abs(ref.replay_value - ref.value).max() < 1e-6 * ref.value.max()
+    rel = np.abs(ref.replay_value - ref.value) / ref.value
+    assert ref.replay_error == rel.max() < 1e-5  # the check, as the benchmark and chapter 8 read it
     again = reference_points(quartic, 12, seed=3, progress=False, replay=False)
     np.testing.assert_array_equal(again.points, ref.points)  # the seed fixes the states
-    assert again.replay_value is None and ref.info["seed"] == 3 and ref.info["points"] == 12
+    assert again.replay_value is None and again.replay_error is None
+    assert ref.info["seed"] == 3 and ref.info["points"] == 12
     path = tmp_path / "pts.npz"
     ref.save(path)
     back = ReferenceGrid.load(path)
