@@ -32,6 +32,7 @@ __all__ = [
     "evaluation_grid",
     "infinite_horizon_residual",
     "optimality_errors",
+    "known_policy",
     "policy_of",
     "closed_loop",
     "ClosedLoopResult",
@@ -180,6 +181,14 @@ def policy_of(system, value_fn: ValueFn) -> Callable[[Tensor], Tensor]:
     return mu
 
 
+def known_policy(system) -> Callable[[Tensor], Tensor] | None:
+    """mu*: the system's ``policy_star``, else the policy of its ``value_star`` (:func:`policy_of`, by autograd),
+    else None."""
+    if system.policy_star is not None:
+        return system.policy_star
+    return None if system.value_star is None else policy_of(system, system.value_star)
+
+
 def optimality_errors(
     system, value_fn: ValueFn, points: Tensor | None = None, points_per_dim: int | None = None
 ) -> dict:
@@ -187,7 +196,8 @@ def optimality_errors(
 
     Raises a ValueError when the system has no known V*.
 
-    * ``system``: the control-affine system, with ``value_star`` and ``policy_star``.
+    * ``system``: the control-affine system, with ``value_star`` (and ``policy_star``; None: mu* is the policy
+      of V*, ``-1/2 R^{-1} g' grad V*`` by autograd, :func:`policy_of`).
     * ``value_fn``: V, a batched torch callable (N, n) -> (N,).
     * ``points``: (N, n) states; None: as in :func:`infinite_horizon_residual`.
     * ``points_per_dim``: the grid's points per axis; None: :func:`default_points_per_dim`.
@@ -195,8 +205,9 @@ def optimality_errors(
     Returns a dict: ``value_max_error`` (the largest ``abs(V - V*)``), ``value_rmse``, ``value_mse``, and the
     same three for mu (``policy_...``, the largest over points and inputs).
     """
-    if system.value_star is None or system.policy_star is None:
-        raise ValueError(f"system '{system.name}' has no known V*/mu*; errors need a reference (see pinnhjb.reference)")
+    if system.value_star is None:
+        raise ValueError(f"system '{system.name}' has no known V*; errors need a reference (see pinnhjb.reference)")
+    mu_star = known_policy(system)
     if points is None and uses_grid(system, points_per_dim):
         points = evaluation_grid(system, points_per_dim)
     batches = _chunks(points) if points is not None else _monte_carlo_batches(system)
@@ -205,7 +216,7 @@ def optimality_errors(
     for xc in batches:
         with torch.no_grad():
             dv.append(value_fn(xc).detach() - system.value_star(xc))
-        du.append(mu(xc) - system.policy_star(xc))
+        du.append(mu(xc) - mu_star(xc))
     dv, du = torch.cat(dv), torch.cat(du)
     return {
         "value_max_error": float(dv.abs().max()),

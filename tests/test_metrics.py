@@ -3,6 +3,8 @@ by RK4)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -82,6 +84,21 @@ def test_optimality_errors_detect_a_wrong_value(lq_system):
     assert errors["value_max_error"] == pytest.approx(0.5 * lq_system.value_star(grid).max().item(), rel=1e-12)
     assert errors["policy_max_error"] == pytest.approx(0.5 * lq_system.policy_star(grid).abs().max().item(), rel=1e-12)
     assert errors["value_mse"] == pytest.approx(errors["value_rmse"] ** 2, rel=1e-12)
+
+
+def test_optimality_errors_without_policy_star_use_the_policy_of_value_star():
+    """A system that gives V* but not mu*: mu* is the policy of V* (autograd), so the errors match the ones with the
+    closed-form mu*, and evaluate() reports them instead of failing."""
+    quartic = ph.systems.quartic()
+    bare = dataclasses.replace(quartic, policy_star=None)
+    value = lambda x: 1.1 * quartic.value_star(x)  # noqa: E731
+    full, partial = (metrics.optimality_errors(s, value, points_per_dim=11) for s in (quartic, bare))
+    assert full.keys() == partial.keys()
+    for key in full:
+        assert partial[key] == pytest.approx(full[key], rel=1e-10, abs=1e-15), key
+    grid = quartic.grid(5)
+    torch.testing.assert_close(metrics.known_policy(bare)(grid), quartic.policy_star(grid), rtol=1e-12, atol=1e-14)
+    assert metrics.known_policy(ph.systems.pendulum()) is None
 
 
 def test_optimality_errors_need_a_known_value():
