@@ -27,7 +27,7 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
     "gelu": nn.GELU,
 }
 
-#: sigma'(h) from h and y = sigma(h), for the activations that have a closed form (the others go by autograd).
+#: sigma'(h) from h and y = sigma(h), for the activations that have a closed form (torch differentiates the others).
 ACTIVATION_DERIVATIVES: dict[type[nn.Module], Callable[[Tensor, Tensor], Tensor]] = {
     nn.Tanh: lambda h, y: 1.0 - y * y,
     nn.Sigmoid: lambda h, y: y * (1.0 - y),
