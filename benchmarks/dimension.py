@@ -42,6 +42,7 @@ from _common import parse
 import pinnhjb as ph
 from pinnhjb.executor import map_runs
 from pinnhjb.metrics import infinite_horizon_residual
+from pinnhjb.pinn import gradient
 from pinnhjb.storage import provenance
 
 
@@ -103,9 +104,7 @@ class _DeepXDEValue:
             return self.fn(torch.as_tensor(x)).numpy()
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
-        xg = torch.as_tensor(x).clone().requires_grad_(True)
-        (g,) = torch.autograd.grad(self.fn(xg).sum(), xg)
-        return g.numpy()
+        return gradient(self.fn, torch.as_tensor(x))[1].numpy()
 
 
 def run_deepxde(task: dict) -> dict:
