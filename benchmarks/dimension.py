@@ -79,6 +79,7 @@ def run(task: dict) -> dict:
     config = ph.TrainConfig.preset(task["recipe"], dimension=system.n)
     if task["width"] is not None:
         config = config.replace(width=task["width"])
+    config = config.replace(retries=task["retries"])
     solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device="cpu", progress=task["progress"])
     start = time.perf_counter()
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
@@ -89,8 +90,9 @@ def run(task: dict) -> dict:
             sol = solver.extend(sol, to=sol.horizon + step)
     wall = time.perf_counter() - start
     weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
+    rejected = sum(len(s.rejected) for s in sol.stages)
     measured = dict(T=sol.horizon, stages=len(sol.stages), E_ratio=sol.metrics["E"] / zero, wall_s=wall)
-    return _row(task, system, weights, measured, sol)
+    return _row(task, system, weights, dict(measured, rejected=rejected), sol)
 
 
 class _DeepXDEValue:
@@ -200,7 +202,16 @@ def main(argv=None) -> int:
     p.add_argument("--ratio", type=float, default=1e-6, help="stop at E / E(V = 0) <= this")
     p.add_argument("--max-horizon", type=float, default=8.0)
     p.add_argument("--points", type=int, default=4096, help="uniform states of Omega for the true errors")
+    p.add_argument(
+        "--retries",
+        type=int,
+        default=0,
+        help="the default recipe's retries of a failed stage (TrainConfig.retries; the first stage is always "
+        "tried 1 + retries times)",
+    )
     args = parse(p, argv)
+    if args.retries < 0:
+        p.error(f"--retries must be an integer >= 0; got {args.retries}")
     sizes = {
         "lq_ladder": [int(n) for n in args.ladder.split(",") if n],
         "converse": [int(n) for n in args.converse.split(",") if n],
@@ -211,7 +222,9 @@ def main(argv=None) -> int:
     against = [r for r in args.against.split(",") if r]
     if unknown := set(against) - set(RECIPES[1:]):
         p.error(f"--against: unknown recipe(s) {sorted(unknown)}; choose from {', '.join(RECIPES[1:])}")
-    common = dict(ratio=args.ratio, max_horizon=args.max_horizon, points=args.points, seed=args.seed)
+    common = dict(
+        ratio=args.ratio, max_horizon=args.max_horizon, points=args.points, seed=args.seed, retries=args.retries
+    )
     width = {"default": args.width, "adam_lbfgs": None, "deepxde": None}
     common["progress"] = not args.no_progress and args.workers is None and args.scheduler is None
     steps = {"lq_ladder": args.step, "converse": args.converse_step}
@@ -243,6 +256,7 @@ def main(argv=None) -> int:
         "compare": sorted(compare),
         "against": against,
         "width": args.width,
+        "retries": args.retries,
         "workers": args.workers,
         "config": ph.TrainConfig.preset("default").to_dict(),
         "configs": {r: ph.TrainConfig.preset(r).to_dict() for r in ("default", "adam_lbfgs")},
@@ -265,21 +279,24 @@ def main(argv=None) -> int:
         f"{dx_version}), "
         f"stages of {args.step:g} s (the converse system "
         f"{args.converse_step:g} s: its open loop is fast and unstable) until E / E(V = 0) <= "
-        f"{args.ratio:g} or T = {args.max_horizon:g}, seed {args.seed}, {args.threads} thread(s) per run, "
+        f"{args.ratio:g} or T = {args.max_horizon:g}, "
+        f"{f'a failed stage tried up to {args.retries} more times (retries), ' if args.retries else ''}"
+        f"seed {args.seed}, {args.threads} thread(s) per run, "
         f"{args.workers or 1} run(s) at a time, CPU; torch "
         f"{meta['torch']}; created {meta['created']}. Errors against the exact V* on {args.points} seeded uniform "
         "states of Omega.",
         "",
         "| system | recipe | n | m | weights | step | T | E / E(V = 0) | max abs(V - V*) / max V* | "
-        "mean rel. error of grad V | wall s (training and measuring E) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "mean rel. error of grad V | wall s (training and measuring E) | attempts not kept |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['weights']} | {r['step']:g} | {r['T']:g} | "
-            f"{r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | {r['grad_mean_rel_error']:.1e} | {r['wall_s']:.0f} |"
+            f"{r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | {r['grad_mean_rel_error']:.1e} | {r['wall_s']:.0f} | "
+            f"{r.get('rejected', 0)} |"
         )
-    lines += [f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['status']} |||||||" for r in missing]
+    lines += [f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['status']} ||||||||" for r in missing]
     lines.append("")
     for name, slope in fits.items():
         if slope is not None:

@@ -85,6 +85,12 @@ class TrainConfig:
     * ``max_time``: a cap on a stage's training wall seconds (phases not yet started when it passes are skipped),
       or None.
     * ``warm_start``: initialise each extension stage from the previous stage's weights.
+    * ``retries``: extra attempts at a stage whose training failed, each with a new seed (the stage's seed +
+      1000 per attempt); the attempt with the lowest final training loss is kept. The first stage (the only one
+      that starts from random weights, where a bad local minimum is likely) is always tried ``1 + retries``
+      times; an extension stage is tried again only while its final loss is above ``retry_factor`` times the
+      previous stage's. 0: one attempt per stage. The rejected attempts are listed in ``Stage.rejected``.
+    * ``retry_factor``: the rise of the final training loss, against the previous stage's, that fails a stage.
 
     Reporting:
 
@@ -110,6 +116,8 @@ class TrainConfig:
     phases: tuple[Phase, ...] = (LevenbergMarquardt(),)
     max_time: float | None = None
     warm_start: bool = True
+    retries: int = 0
+    retry_factor: float = 10.0
     eval_points_per_dim: int | None = None
     log_every: int = 25
 
@@ -129,6 +137,8 @@ class TrainConfig:
                 "n_origin": (integer(self.n_origin, 1), "an integer >= 1"),
                 "eval_points_per_dim": (integer(self.eval_points_per_dim, 2, none=True), "an integer >= 2 or None"),
                 "log_every": (integer(self.log_every, 1), "an integer >= 1"),
+                "retries": (integer(self.retries, 0), "an integer >= 0"),
+                "retry_factor": (real(self.retry_factor, 1), "a finite number >= 1"),
                 "max_time": (
                     real(self.max_time, 0, low_open=True, none=True, inf=True),
                     "a number of seconds > 0 or None",
@@ -224,8 +234,8 @@ class TrainConfig:
     def to_dict(self) -> dict:
         """The config as plain data (phases as dicts with their names), as checkpoints store it.
 
-        A field added after checkpoints were first stored (``flat_origin``) is written only when it differs from
-        its default, so every config stored before it reads back exactly as it was written."""
+        A field added after checkpoints were first stored (``_ADDED_LATER``) is written only when it differs
+        from its default, so every config stored before it reads back exactly as it was written."""
         d = {
             f.name: getattr(self, f.name)
             for f in fields(self)
@@ -280,7 +290,7 @@ def _refuse_flat_fields(changes: dict) -> None:
 
 
 #: Fields added after checkpoints were first stored: :meth:`TrainConfig.to_dict` writes them only when set.
-_ADDED_LATER = ("flat_origin",)
+_ADDED_LATER = ("flat_origin", "retries", "retry_factor")
 
 #: From this state dimension on, the default recipe widens its network (:func:`default_network`).
 WIDE_FROM = 6

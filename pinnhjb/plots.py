@@ -411,7 +411,7 @@ def value_slices(sol, planes, points, errors, labels, points_per_dim: int = 41):
         sc = right.scatter(
             points[:, i], points[:, j], c=errors, s=14, cmap=DIVERGING, vmin=-top, vmax=top, edgecolors="none"
         )
-        fig.colorbar(sc, ax=right, format="%.1g")
+        fig.colorbar(sc, ax=right, format="%.2g")  # 2 digits: ticks 0.015 and 0.01 differ
         right.set_title(r"$(\hat V-V_{\rm ref})/\max V_{\rm ref}$ at its states")
         for ax in (left, right):
             ax.set_xlim(*sol.system.domain[i])

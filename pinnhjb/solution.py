@@ -156,6 +156,8 @@ class Stage:
     * ``metrics``: E, E_zero and, when the system knows V*, the errors against V*, mu* of the chain ending with
       this stage (:meth:`FiniteHorizonSolution.evaluate`), computed once when the stage is built; empty when it
       was never evaluated. The stage holds its own copy.
+    * ``rejected``: the attempts at this stage that were trained and not kept (``config.retries``), each a dict
+      with its ``seed``, ``final_loss``, ``wall_time`` and ``stop_reason``; empty when the first attempt was kept.
     """
 
     model: FiniteHorizonValue
@@ -163,9 +165,11 @@ class Stage:
     history: TrainHistory
     seed: int
     metrics: dict = field(default_factory=dict)
+    rejected: tuple = ()
 
     def __post_init__(self):
         object.__setattr__(self, "metrics", dict(self.metrics))
+        object.__setattr__(self, "rejected", tuple(dict(a) for a in self.rejected))
 
     @property
     def length(self) -> float:
@@ -273,7 +277,7 @@ class FiniteHorizonSolution(_ValueSolution):
 
     def summary(self) -> list[dict]:
         """One row per stage: ``stage``, ``horizon`` reached, ``wall_time``, ``final_loss``, ``stop_reason`` and
-        the stage's metrics.
+        the stage's metrics; ``rejected`` (how many attempts were not kept) in the rows of retried stages.
 
         After ``solve_until`` a row also holds ``converged``: E <= tol at that stage (False in the last row when
         it stopped at ``max_horizon`` short of ``tol``).
@@ -286,6 +290,7 @@ class FiniteHorizonSolution(_ValueSolution):
                 "final_loss": s.history.final_loss,
                 "stop_reason": s.history.stop_reason,
                 **s.metrics,
+                **({"rejected": len(s.rejected)} if s.rejected else {}),
             }
             for i, s in enumerate(self.stages)
         ]

@@ -208,29 +208,56 @@ class FiniteHorizonSolver(_Solver):
       E and the errors on ``config.eval_points_per_dim`` points per axis (see ``evaluate``).
     """
 
-    def _train_stage(self, length: float, start: float, terminal, init: FiniteHorizonValue | None, index: int) -> Stage:
+    def _train_stage(
+        self, length: float, start: float, terminal, init: FiniteHorizonValue | None, index: int, previous_loss=None
+    ) -> Stage:
+        """Train stage ``index`` on [0, ``length``]; with ``config.retries``, try again with new seeds (see
+        :class:`~pinnhjb.config.TrainConfig`) and keep the attempt with the lowest final loss.
+
+        * ``previous_loss``: the previous stage's final training loss (None for the first stage).
+        """
         cfg = self.config
-        seed = self.seed + index
-        torch.manual_seed(seed)
-        model = FiniteHorizonValue(
-            self.system.n,
-            length,
-            self.system.train_domain,
-            terminal,
-            width=cfg.width,
-            depth=cfg.depth,
-            activation=cfg.activation,
-            ansatz=cfg.ansatz,
-            flat_origin=cfg.flat_origin,
-        )
-        model = model.to(device=self.device, dtype=self.dtype)
-        if init is not None and cfg.warm_start:
-            model.net.load_state_dict(init.net.state_dict())
-        desc = f"{self.system.name} T={start:g}->{start + length:g}"
-        history = train_finite_horizon(self.system, model, cfg, seed=seed, progress=self.progress, desc=desc)
-        for p in model.parameters():
-            p.requires_grad_(False)
-        return Stage(model=model.eval(), start=start, history=history, seed=seed)
+        attempts: list[Stage] = []
+        for attempt in range(1 + cfg.retries):
+            if attempts:
+                best = min(a.history.final_loss for a in attempts)
+                if previous_loss is not None and math.isfinite(best) and best <= cfg.retry_factor * previous_loss:
+                    break  # an extension stage that did not fail
+            seed = self.seed + index + 1000 * attempt
+            torch.manual_seed(seed)
+            model = FiniteHorizonValue(
+                self.system.n,
+                length,
+                self.system.train_domain,
+                terminal,
+                width=cfg.width,
+                depth=cfg.depth,
+                activation=cfg.activation,
+                ansatz=cfg.ansatz,
+                flat_origin=cfg.flat_origin,
+            )
+            model = model.to(device=self.device, dtype=self.dtype)
+            if init is not None and cfg.warm_start:
+                model.net.load_state_dict(init.net.state_dict())
+            desc = f"{self.system.name} T={start:g}->{start + length:g}"
+            desc += f", attempt {attempt + 1}" if attempt else ""
+            history = train_finite_horizon(self.system, model, cfg, seed=seed, progress=self.progress, desc=desc)
+            for p in model.parameters():
+                p.requires_grad_(False)
+            attempts.append(Stage(model=model.eval(), start=start, history=history, seed=seed))
+        losses = [a.history.final_loss for a in attempts]
+        kept = min(range(len(attempts)), key=lambda i: (not math.isfinite(losses[i]), losses[i]))
+        rejected = [
+            {
+                "seed": a.seed,
+                "final_loss": a.history.final_loss,
+                "wall_time": a.history.wall_time,
+                "stop_reason": a.history.stop_reason,
+            }
+            for i, a in enumerate(attempts)
+            if i != kept
+        ]
+        return replace(attempts[kept], rejected=rejected)
 
     def _evaluated(self, done: list[Stage], stage: Stage, terminal_spec: dict) -> FiniteHorizonSolution:
         """The chain ``done`` + ``stage``, where ``stage`` (just trained) gets its metrics from :meth:`evaluate`."""
@@ -306,7 +333,14 @@ class FiniteHorizonSolver(_Solver):
             for end in ends:
                 prev = current.stages[-1]
                 terminal = ValueTerminalCost(prev.model)  # frozen after training; shared, not copied
-                stage = self._train_stage(float(end - prev.end), prev.end, terminal, prev.model, len(current.stages))
+                stage = self._train_stage(
+                    float(end - prev.end),
+                    prev.end,
+                    terminal,
+                    prev.model,
+                    len(current.stages),
+                    previous_loss=prev.history.final_loss,
+                )
                 current = self._evaluated(current.stages, stage, solution.terminal_spec)
                 if callback is not None:
                     callback(current)

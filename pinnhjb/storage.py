@@ -158,6 +158,7 @@ def save(solution, path, **extra) -> Path:
                     "state": _state(s.model),
                     "history": s.history.to_dict(),
                     "metrics": _plain(s.metrics),
+                    **({"rejected": [_plain(a) for a in s.rejected]} if s.rejected else {}),
                 }
                 for s in solution.stages
             ],
@@ -415,6 +416,7 @@ def load(path, system=None, device=None, config: TrainConfig | None = None, term
                     history=_history(st["history"], f"stage {i + 1}", path),
                     seed=st["seed"],
                     metrics=_metrics(st["metrics"], f"stage {i + 1}", path),
+                    rejected=st.get("rejected", ()),
                 )
             )
         sol = FiniteHorizonSolution(

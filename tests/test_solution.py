@@ -48,7 +48,7 @@ class Recorder:
 @pytest.mark.parametrize(
     "cls, fields",
     [
-        (Stage, {"model", "start", "history", "seed", "metrics"}),
+        (Stage, {"model", "start", "history", "seed", "metrics", "rejected"}),
         (TrainHistory, {"step", "loss", "wall", "phase", "stop_reason", "wall_time", "final_loss"}),
         (FiniteHorizonSolution, {"system", "config", "stages", "terminal_spec", "interrupted", "tol", "provenance"}),
         (SteadyStateSolution, {"system", "config", "model", "history", "seed", "metrics", "provenance"}),

@@ -5,6 +5,7 @@ Every run is a few dozen Adam steps of the quick preset: enough to see the loss 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -313,6 +314,10 @@ def test_steady_state_solver(pendulum):
         ("dtype", "float16"),
         ("sampling", "random"),
         ("phases", (ph.Adam(), "lbfgs")),
+        ("retries", -1),
+        ("retries", 1.5),
+        ("retry_factor", 0.5),
+        ("retry_factor", float("nan")),
     ],
 )
 def test_train_config_rejects_bad_fields(field, value):
@@ -417,3 +422,47 @@ def test_solution_closed_loop_runs_its_policy(chain):
     x0 = torch.tensor([[0.5, 0.0], [-0.5, 0.2]], dtype=torch.float64)
     np.testing.assert_allclose(result.u[0], chain.policy(x0).numpy(), rtol=1e-6)
     assert np.all(np.isfinite(result.cost)) and np.all(result.cost > 0)
+
+
+# ------------------------------------------------------------------------------ retries (config.retries)
+def scripted_losses(monkeypatch, losses):
+    """Train as usual, but report the final losses ``losses`` in turn (a stage's loss decides its retries)."""
+    real = ph.solver.train_finite_horizon
+    seeds = []
+
+    def train(*args, **kwargs):
+        seeds.append(kwargs["seed"])
+        return dataclasses.replace(real(*args, **kwargs), final_loss=losses[len(seeds) - 1])
+
+    monkeypatch.setattr(ph.solver, "train_finite_horizon", train)
+    return seeds
+
+
+def test_first_stage_is_tried_one_plus_retries_times_and_keeps_the_lowest_loss(pendulum, monkeypatch):
+    seeds = scripted_losses(monkeypatch, [3.0, 1.0, 2.0])
+    sol = solver(system=pendulum, seed=7, retries=2).solve(0.5)
+    assert seeds == [7, 1007, 2007] and sol.stages[0].seed == 1007  # solver seed 7, stage 0
+    assert [a["seed"] for a in sol.stages[0].rejected] == [7, 2007]
+    assert [a["final_loss"] for a in sol.stages[0].rejected] == [3.0, 2.0]
+    assert sol.summary()[0]["rejected"] == 2
+
+
+def test_extension_stage_is_retried_only_when_its_loss_rises(pendulum, monkeypatch):
+    base = solver(system=pendulum).solve(0.5)  # one attempt without retries
+    assert base.stages[0].rejected == () and "rejected" not in base.summary()[0]
+    loss = base.stages[0].history.final_loss
+    seeds = scripted_losses(monkeypatch, [5 * loss, 60 * loss, loss, 0.1 * loss])
+    sol = solver(system=pendulum, retries=2).extend(base, to=1.5, step=0.5)
+    # stage 2: 5x its previous stage's loss, below retry_factor = 10: kept; stage 3: 12x its previous stage's
+    # (5 loss) fails, and its second attempt, below 10x, is kept and ends the retries
+    assert seeds == [1, 2, 1002]
+    assert sol.stages[1].rejected == () and sol.stages[2].seed == 1002
+    assert [a["final_loss"] for a in sol.stages[2].rejected] == [60 * loss]
+
+
+def test_rejected_attempts_are_saved_and_loaded(pendulum, monkeypatch, tmp_path):
+    scripted_losses(monkeypatch, [2.0, 1.0])
+    sol = solver(system=pendulum, retries=1).solve(0.5)
+    loaded = ph.load(ph.save(sol, tmp_path / "retried.pt"), pendulum)
+    assert loaded.stages[0].rejected == sol.stages[0].rejected and len(loaded.stages[0].rejected) == 1
+    assert loaded.config.retries == 1
