@@ -20,7 +20,7 @@ serial run at the same ``--threads``.
     .venv/bin/python benchmarks/dimension.py                       # ladder n = 2 ... 16, converse n = 2 ... 12
     .venv/bin/python benchmarks/dimension.py --ladder 2,4 --converse 4 --compare "" --out /tmp/dim
     benchmarks/.venv/bin/python benchmarks/dimension.py --ladder 6 --converse 6 --against deepxde --width 24 \
-        --workers 2 --threads 1 --out benchmarks/results/repeats/deepxde-n6      # DeepXDE at n = 6, its venv
+        --max-horizon 8 --workers 2 --threads 1 --out benchmarks/results/repeats/deepxde-n6  # DeepXDE, its venv
 
 Writes ``dimension.md``, ``dimension.json`` (config, seed, versions, wall times) and the figure
 ``dimension.png`` (error and wall time against n) to ``benchmarks/results/``.
@@ -63,6 +63,22 @@ def true_errors(system, sol, points: int, seed: int) -> dict:
     }
 
 
+def horizon_floor(system, horizon: float, points: int, seed: int) -> float | None:
+    """For a linear system (the LQ ladder), the error that the horizon alone leaves: max abs(x'P_T x - V*) / max V*
+    over the states of :func:`true_errors`, with P_T the Riccati ODE's exact V_T(., 0) from the zero terminal cost
+    (:func:`pinnhjb.lq.riccati_ode`); None for a nonlinear system (no exact V_T)."""
+    if system.builder != "lq_ladder":
+        return None
+    lin = system.linearize()
+    P_T = ph.lq.riccati_ode(lin.A, lin.B, lin.Q, system.R, horizon).at(0.0)
+    gen = torch.Generator().manual_seed(seed)
+    box = torch.as_tensor(system.domain, dtype=torch.float64)
+    x = (box[:, 0] + (box[:, 1] - box[:, 0]) * torch.rand(points, system.n, generator=gen, dtype=torch.float64)).numpy()
+    v_star = system.value_star(torch.as_tensor(x)).numpy()
+    v_T = np.einsum("bi,ij,bj->b", x, P_T, x)
+    return float(np.abs(v_T - v_star).max() / np.abs(v_star).max())
+
+
 BUILDERS = {"lq_ladder": lambda n: ph.systems.lq_ladder(n // 2), "converse": ph.systems.converse}
 RECIPES = ("default", "adam_lbfgs", "deepxde")  # pinnhjb's presets, and DeepXDE
 
@@ -90,9 +106,18 @@ def run(task: dict) -> dict:
             sol = solver.extend(sol, to=sol.horizon + step)
     wall = time.perf_counter() - start
     weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
-    rejected = sum(len(s.rejected) for s in sol.stages)
+    chain = [  # each stage: its horizon, E, final training loss and the losses of the attempts not kept
+        dict(
+            T=s.end,
+            E_ratio=s.metrics["E"] / s.metrics["E_zero"],
+            final_loss=s.history.final_loss,
+            rejected_losses=[a["final_loss"] for a in s.rejected],
+        )
+        for s in sol.stages
+    ]
     measured = dict(T=sol.horizon, stages=len(sol.stages), E_ratio=sol.metrics["E"] / zero, wall_s=wall)
-    return _row(task, system, weights, dict(measured, rejected=rejected), sol)
+    measured["rejected"] = sum(len(s.rejected) for s in sol.stages)
+    return dict(_row(task, system, weights, measured, sol), chain=chain)
 
 
 class _DeepXDEValue:
@@ -147,6 +172,7 @@ def _row(task: dict, system, weights: int, measured: dict, sol) -> dict:
         "step": task["step"],
         **measured,
         **true_errors(system, sol, task["points"], task["seed"]),
+        "horizon_floor": horizon_floor(system, measured["T"], task["points"], task["seed"]),
     }
     print(
         f"{system.name} n={system.n} {task['recipe']}: T={row['T']:g} E/E0={row['E_ratio']:.1e} "
@@ -154,6 +180,11 @@ def _row(task: dict, system, weights: int, measured: dict, sol) -> dict:
         flush=True,
     )
     return row
+
+
+def _sci(value) -> str:
+    """A table cell: ``value`` as 1.2e-03, or a dash for None."""
+    return "-" if value is None else f"{value:.1e}"
 
 
 def exponent(rows: list[dict]) -> float | None:
@@ -200,7 +231,12 @@ def main(argv=None) -> int:
     p.add_argument("--step", type=float, default=2.0, help="the stage length (the ladder)")
     p.add_argument("--converse-step", type=float, default=0.5, help="the stage length of the converse system")
     p.add_argument("--ratio", type=float, default=1e-6, help="stop at E / E(V = 0) <= this")
-    p.add_argument("--max-horizon", type=float, default=8.0)
+    p.add_argument(
+        "--max-horizon",
+        type=float,
+        default=12.0,
+        help="the longest horizon (the ladder's rows report the error its exact V_T leaves there: horizon_floor)",
+    )
     p.add_argument("--points", type=int, default=4096, help="uniform states of Omega for the true errors")
     p.add_argument(
         "--retries",
@@ -275,7 +311,7 @@ def main(argv=None) -> int:
         "",
         f"The default recipe (one network per system, "
         f"{f'3 x {args.width} at every n' if args.width else 'widths by its rule'}; "
-        f"{' and '.join(f'`{r}`' for r in against) or 'nothing'} beside it at n = {args.compare or 'none'}"
+        f"{' and '.join(f'`{r}`' for r in against) + ' beside it at n = ' + args.compare if compare else 'alone'}"
         f"{dx_version}), "
         f"stages of {args.step:g} s (the converse system "
         f"{args.converse_step:g} s: its open loop is fast and unstable) until E / E(V = 0) <= "
@@ -287,16 +323,17 @@ def main(argv=None) -> int:
         "states of Omega.",
         "",
         "| system | recipe | n | m | weights | step | T | E / E(V = 0) | max abs(V - V*) / max V* | "
-        "mean rel. error of grad V | wall s (training and measuring E) | attempts not kept |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "mean rel. error of grad V | wall s (training and measuring E) | attempts not kept | "
+        "exact V_T's error (the horizon alone) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['weights']} | {r['step']:g} | {r['T']:g} | "
             f"{r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | {r['grad_mean_rel_error']:.1e} | {r['wall_s']:.0f} | "
-            f"{r.get('rejected', 0)} |"
+            f"{r.get('rejected', 0)} | {_sci(r.get('horizon_floor'))} |"
         )
-    lines += [f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['status']} ||||||||" for r in missing]
+    lines += [f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['status']} |||||||||" for r in missing]
     lines.append("")
     for name, slope in fits.items():
         if slope is not None:

@@ -42,9 +42,22 @@ def test_dimension_rows_are_the_same_in_workers(tmp_path):
     assert 0 < row["value_rel_error"] < 1  # a trained network, measured against the exact V*
     page = (tmp_path / "serial" / "dimension.md").read_text()
     assert "Goal max relative V error <= 1e-4" in page and (tmp_path / "serial" / "dimension.png").stat().st_size
+    assert [c["T"] for c in row["chain"]] == [0.5] and row["chain"][0]["rejected_losses"] == []
+    assert 0 < row["horizon_floor"] < 1  # V_0.5 is far from V*, whatever the network
     dimension = _module("dimension")
-    with pytest.raises(SystemExit):  # refused before any run
-        dimension.main([*tiny, "--out", str(tmp_path / "bad"), "--workers", "0"])
+    for bad in (["--workers", "0"], ["--retries", "-1"]):
+        with pytest.raises(SystemExit):  # refused before any run
+            dimension.main([*tiny, "--out", str(tmp_path / "bad"), *bad])
+
+
+def test_horizon_floor_is_the_riccati_ode_s_error_and_falls_with_the_horizon():
+    import pinnhjb as ph
+
+    dimension = _module("dimension")
+    ladder = ph.systems.lq_ladder(2)
+    floors = [dimension.horizon_floor(ladder, T, 512, 0) for T in (2.0, 8.0, 12.0)]
+    assert floors[0] > floors[1] > floors[2] > 0
+    assert dimension.horizon_floor(ph.systems.converse(2), 8.0, 512, 0) is None  # nonlinear: no exact V_T
 
 
 def test_dimension_deepxde_rows_say_when_it_is_missing(tmp_path):
