@@ -46,14 +46,15 @@ from pinnhjb.pinn import gradient
 from pinnhjb.storage import provenance
 
 
+def _states(system, points: int, seed: int) -> torch.Tensor:
+    """``points`` seeded uniform states of Omega, float64: where the errors are measured."""
+    return system.sample(points, torch.Generator().manual_seed(seed), dtype=torch.float64, box=system.domain)
+
+
 def true_errors(system, sol, points: int, seed: int) -> dict:
     """max abs(V - V*) / max V* and the mean relative error of grad V over seeded uniform states of Omega."""
-    gen = torch.Generator().manual_seed(seed)
-    box = torch.as_tensor(system.domain, dtype=torch.float64)
-    x = box[:, 0] + (box[:, 1] - box[:, 0]) * torch.rand(points, system.n, generator=gen, dtype=torch.float64)
-    v_star = system.value_star(x)
-    xg = x.clone().requires_grad_(True)
-    (g_star,) = torch.autograd.grad(system.value_star(xg).sum(), xg)
+    x = _states(system, points, seed)
+    v_star, g_star = (t.detach() for t in gradient(system.value_star, x))
     v = torch.as_tensor(sol.value(x.numpy()))
     g = torch.as_tensor(sol.gradient(x.numpy()))
     rel_g = (g - g_star).norm(dim=-1) / g_star.norm(dim=-1).clamp_min(1e-12)
@@ -71,9 +72,7 @@ def horizon_floor(system, horizon: float, points: int, seed: int) -> float | Non
         return None
     lin = system.linearize()
     P_T = ph.lq.riccati_ode(lin.A, lin.B, lin.Q, system.R, horizon).at(0.0)
-    gen = torch.Generator().manual_seed(seed)
-    box = torch.as_tensor(system.domain, dtype=torch.float64)
-    x = (box[:, 0] + (box[:, 1] - box[:, 0]) * torch.rand(points, system.n, generator=gen, dtype=torch.float64)).numpy()
+    x = _states(system, points, seed).numpy()
     v_star = system.value_star(torch.as_tensor(x)).numpy()
     v_T = np.einsum("bi,ij,bj->b", x, P_T, x)
     return float(np.abs(v_T - v_star).max() / np.abs(v_star).max())
