@@ -94,7 +94,7 @@ def run(task: dict) -> dict:
     config = ph.TrainConfig.preset(task["recipe"], dimension=system.n)
     if task["width"] is not None:
         config = config.replace(width=task["width"])
-    config = config.replace(retries=task["retries"])
+    config = config.replace(retries=task["retries"], loop_share=task.get("loop_share", 0.0))
     solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device="cpu", progress=task["progress"])
     start = time.perf_counter()
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
@@ -244,9 +244,18 @@ def main(argv=None) -> int:
         help="the default recipe's retries of a failed stage (TrainConfig.retries; the first stage is always "
         "tried 1 + retries times)",
     )
+    p.add_argument(
+        "--loop-share",
+        type=float,
+        default=0.0,
+        help="the default recipe's share of training states along the linearisation's LQR loops from Omega "
+        "(TrainConfig.loop_share)",
+    )
     args = parse(p, argv)
     if args.retries < 0:
         p.error(f"--retries must be an integer >= 0; got {args.retries}")
+    if not 0 <= args.loop_share < 1:
+        p.error(f"--loop-share must be in [0, 1); got {args.loop_share}")
     sizes = {
         "lq_ladder": [int(n) for n in args.ladder.split(",") if n],
         "converse": [int(n) for n in args.converse.split(",") if n],
@@ -261,10 +270,11 @@ def main(argv=None) -> int:
         ratio=args.ratio, max_horizon=args.max_horizon, points=args.points, seed=args.seed, retries=args.retries
     )
     width = {"default": args.width, "adam_lbfgs": None, "deepxde": None}
+    loops = {"default": args.loop_share, "adam_lbfgs": 0.0, "deepxde": 0.0}
     common["progress"] = not args.no_progress and args.workers is None and args.scheduler is None
     steps = {"lq_ladder": args.step, "converse": args.converse_step}
     tasks = [
-        dict(common, system=name, n=n, recipe=recipe, step=steps[name], width=width[recipe])
+        dict(common, system=name, n=n, recipe=recipe, step=steps[name], width=width[recipe], loop_share=loops[recipe])
         for name, ns in sizes.items()
         for n in ns
         for recipe in ["default"] + (against if n in compare else [])
@@ -292,6 +302,7 @@ def main(argv=None) -> int:
         "against": against,
         "width": args.width,
         "retries": args.retries,
+        "loop_share": args.loop_share,
         "workers": args.workers,
         "config": ph.TrainConfig.preset("default").to_dict(),
         "configs": {r: ph.TrainConfig.preset(r).to_dict() for r in ("default", "adam_lbfgs")},
@@ -316,6 +327,7 @@ def main(argv=None) -> int:
         f"{args.converse_step:g} s: its open loop is fast and unstable) until E / E(V = 0) <= "
         f"{args.ratio:g} or T = {args.max_horizon:g}, "
         f"{f'a failed stage tried up to {args.retries} more times (retries), ' if args.retries else ''}"
+        f"{f'{args.loop_share:.0%} of the training states along LQR loops (loop_share), ' if args.loop_share else ''}"
         f"seed {args.seed}, {args.threads} thread(s) per run, "
         f"{args.workers or 1} run(s) at a time, CPU; torch "
         f"{meta['torch']}; created {meta['created']}. Errors against the exact V* on {args.points} seeded uniform "

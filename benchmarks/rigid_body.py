@@ -7,12 +7,17 @@ states of Omega, stored under ``artifacts/reference/`` (made once, then loaded),
 its open-loop control (``replay_value`` = ``value``).
 
 * **Infinite horizon (our setting).** The default recipe with ``flat_origin`` (grad V(0, t) = 0 in the ansatz, so
-  that the policy is 0 at the origin; ``--no-flat-origin``: without), widened to ``--width``, solves on [0, step]
-  and extends one stage at a time until E / E(V = 0) <= ``--ratio``, T = ``--max-horizon`` or ``--max-time`` seconds
-  of training; after each stage: max abs(V - V_ref) / max V_ref and the mean relative error of grad V on the
-  reference points. Then the closed loop of the learned policy from the first ``--closed-loop`` reference states:
-  the cost to t = inf (J to ``t_final`` plus the LQR tail, :func:`pinnhjb.metrics.infinite_horizon_cost`) against
-  V_ref, and whether each run settles (norm of x(t_final) < 1e-3).
+  that the policy is 0 at the origin; ``--no-flat-origin``: without) and ``--loop-share`` of its training states
+  along closed loops from Omega (``TrainConfig.loop_share``; 0: all uniform in the training box), widened to
+  ``--width``, solves on [0, step] and extends one stage at a time until E / E(V = 0) <= ``--ratio``,
+  T = ``--max-horizon`` or ``--max-time`` seconds of training; after each stage: max abs(V - V_ref) / max V_ref
+  and the mean relative error of grad V on the reference points. Then the closed loop of the learned policy from
+  the first ``--closed-loop`` reference states: the cost to t = inf (J to ``t_final`` plus the LQR tail,
+  :func:`pinnhjb.metrics.infinite_horizon_cost`) against V_ref, and whether each run settles (norm of
+  x(t_final) < 1e-3). Where the largest value errors accrue: the residual along the closed loops from the
+  ``--budget-states`` reference states with the largest errors
+  (:meth:`~pinnhjb.solution.FiniteHorizonSolution.residual_along_loop`), the share of its integral accrued
+  outside the training box (``--train-scale`` sets that box: Omega enlarged by this factor, one or six numbers).
 * **Finite horizon (their setting).** T = 20 with terminal cost ``abs(v)^2/2 + abs(w)^2/2``, reached by extension in
   stages of ``--finite-step``; V_20(., 0) against its own reference.
 
@@ -114,6 +119,26 @@ def closed_loop(system, sol, ref: ReferenceGrid, count: int, t_final: float, dt:
     }
 
 
+def budget(sol, ref: ReferenceGrid, count: int, t_final: float = 10.0) -> dict:
+    """The residual along the closed loops from the ``count`` converged reference states with the largest value
+    errors: how much of each error the integrated residual accounts for and how much of it accrued outside the
+    training box."""
+    ok = ref.converged
+    x, v_ref = ref.points[ok], ref.value[ok]
+    err = sol.value(x) - v_ref
+    worst = np.argsort(np.abs(err))[::-1][:count]
+    loops = sol.residual_along_loop(x[worst], t_final=t_final)
+    share = loops.integral_outside / loops.integral
+    return {
+        "states": int(worst.size),
+        "t_final": t_final,
+        "value_error": (err[worst] / v_ref.max()).tolist(),
+        "integral": (loops.integral / v_ref.max()).tolist(),
+        "share_outside": share.tolist(),
+        "leave_box": int(loops.outside.any(axis=0).sum()),
+    }
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--width", type=int, default=None, help="the hidden width (default: the recipe's rule, 40 at n = 6)")
@@ -136,6 +161,20 @@ def main(argv=None) -> int:
         default=True,
         help="build grad V(0, t) = 0 into the ansatz too (default; without it the learned loops rest off the origin)",
     )
+    p.add_argument(
+        "--loop-share",
+        type=float,
+        default=0.3,
+        help="share of the training states along the linearisation's LQR loops from Omega (TrainConfig.loop_share)",
+    )
+    p.add_argument("--loop-time", type=float, default=1.5, help="seconds of loop they are drawn from (loop_time)")
+    p.add_argument(
+        "--train-scale",
+        type=lambda a: [float(b) for b in a.split(",")],
+        default=None,
+        help="the training box: Omega enlarged by this factor, one number or six comma-separated (default 1.1)",
+    )
+    p.add_argument("--budget-states", type=int, default=20, help="states of the largest errors for the loop budget")
     p.add_argument("--reference-points", type=int, default=1000)
     p.add_argument("--closed-loop", type=int, default=100, help="initial states of the closed-loop check")
     p.add_argument("--t-final", type=float, default=40.0)
@@ -146,7 +185,12 @@ def main(argv=None) -> int:
     p.add_argument("--artifacts", type=Path, default=ARTIFACTS, help="where references and checkpoints live")
     p.add_argument("--note", default="", help="a sentence on the conditions of the run, printed under the header")
     args = parse(p, argv)
-    system = ph.systems.rigid_body()
+    if args.budget_states < 1:
+        p.error(f"--budget-states must be >= 1; got {args.budget_states}")
+    try:
+        system = ph.systems.rigid_body(args.train_scale)
+    except ValueError as exc:
+        p.error(str(exc))
     progress = not args.no_progress
     ref_inf = reference(system, math.inf, args.reference_points, 0, progress, args.artifacts)
     config = ph.TrainConfig.preset("default", dimension=system.n)
@@ -154,6 +198,10 @@ def main(argv=None) -> int:
         config = config.replace(width=args.width)
     if args.flat_origin:
         config = config.replace(flat_origin=True)
+    try:
+        config = config.replace(loop_share=args.loop_share, loop_time=args.loop_time)
+    except ValueError as exc:
+        p.error(str(exc))
     if args.points is not None:
         coarse = args.points_coarse or config.phase("lm").points_coarse
         config = config.with_phase("lm", points=args.points, points_coarse=coarse if coarse < args.points else None)
@@ -173,7 +221,9 @@ def main(argv=None) -> int:
     sol, rows, wall = chain(system, config, args.seed, args.step, terminal, until, ref_inf, args)
     loop = closed_loop(system, sol, ref_inf, args.closed_loop, args.t_final, args.dt)
     print(f"  closed loop: {loop}", flush=True)
-    result = {"infinite": {"stages": rows, "wall_s": wall, "closed_loop": loop}}
+    loops = budget(sol, ref_inf, args.budget_states)
+    print(f"  residual along the loops of the largest errors: {loops}", flush=True)
+    result = {"infinite": {"stages": rows, "wall_s": wall, "closed_loop": loop, "budget": loops}}
     if args.ablation:  # what the terminal cost and the width do, on the small network
         small = ph.TrainConfig.preset("default")
         result["ablation"] = {}
@@ -222,6 +272,39 @@ def main(argv=None) -> int:
     return 0
 
 
+def _loops(config: dict) -> str:
+    share = config.get("loop_share", 0.0)
+    if not share:
+        return ""
+    return (
+        f", {share:.0%} of the training states along {config.get('loop_time', 1.5):g} s of the linearisation's LQR "
+        f"loops from Omega (loop_share)"
+    )
+
+
+def _scale(scale) -> str:
+    if scale is None:
+        return "1.1x"
+    if len(set(scale)) == 1:
+        return f"{scale[0]:g}x"
+    return "(" + ", ".join(f"{a:g}" for a in scale) + ")x per coordinate"
+
+
+def _budget_lines(b: dict | None) -> list[str]:
+    """Where the largest value errors accrue, as a sentence (none for runs made before it was measured)."""
+    if not b:
+        return []
+    share = np.asarray(b["share_outside"])
+    return [
+        f"Residual along the closed loops from the {b['states']} reference states with the largest value errors "
+        f"(to t = {b['t_final']:g}; their errors {min(np.abs(b['value_error'])):.1e} to "
+        f"{max(np.abs(b['value_error'])):.1e} of max V_ref): {b['leave_box']} of the loops leave the training box; "
+        f"the share of the integrated residual accrued outside it is {np.median(share):.0%} (median) and "
+        f"{share[:3].min():.0%} to {share[:3].max():.0%} for the three largest errors.",
+        "",
+    ]
+
+
 def table(meta: dict, result: dict, args) -> str:
     """The results as a markdown page: the stages, the closed loop, and the issue's goals met or missed."""
     inf, loop = result["infinite"], result["infinite"]["closed_loop"]
@@ -230,8 +313,9 @@ def table(meta: dict, result: dict, args) -> str:
         "# The 6-D rigid body from the residual alone (generated by `benchmarks/rigid_body.py`; do not edit)",
         "",
         f"Default recipe with a 3 x {args.width} network ({meta['weights']} weights), {args.points} LM points per "
-        f"iteration{FLAT if args.flat_origin else ''}, "
-        f"stages of {args.step:g} s from the terminal cost {TERMINALS[args.terminal]}, seed "
+        f"iteration{FLAT if args.flat_origin else ''}{_loops(meta['config'])}, "
+        f"stages of {args.step:g} s from the terminal cost {TERMINALS[args.terminal]}, trained on Omega enlarged "
+        f"{_scale(args.train_scale)}, seed "
         f"{args.seed}, {args.threads} thread(s), CPU; torch {meta['torch']}; created {meta['created']}. Reference: "
         f"{meta['reference']['points']} converged Pontryagin BVPs at seeded uniform states of Omega "
         f"({meta['reference']['wall_s']:.0f} s to compute; their open-loop controls re-integrated give the same "
@@ -254,6 +338,7 @@ def table(meta: dict, result: dict, args) -> str:
         f"t = {loop['t_final']:g}, then the LQR tail): {loop['settled']} of {loop['states']} settle (norm of "
         f"x(t_final) < 1e-3); cost / V_ref: mean {loop['cost_ratio_mean']:.4f}, max {loop['cost_ratio_max']:.4f}.",
         "",
+        *_budget_lines(inf.get("budget")),
         "| goal (issue #18) | measured | met |",
         "|---|---|---|",
         f"| max abs(V - V_ref) / max V_ref <= 1e-3 | {last['value_rel_error']:.1e} | "

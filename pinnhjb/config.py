@@ -76,6 +76,12 @@ class TrainConfig:
     * ``points_per_time``: under the ansatz with resampling, each fresh time is shared by this many points, so the
       origin term N(0, t) is evaluated once per time; None: every point its own time.
     * ``n_flow``, ``n_boundary``, ``n_origin``: the fixed data set's flow, terminal and origin points.
+    * ``loop_share``: the share of the training states drawn along closed loops instead of uniformly in the
+      training box: from uniform states of Omega, the loop of the linearisation's LQR policy, taken at a uniform
+      time in [0, ``loop_time``] (:func:`pinnhjb.training.loop_states`). The value on Omega depends on the
+      residual along the optimal loops, which can leave the training box; 0: all uniform. (The finite-horizon
+      solver's pool; the steady-state baseline samples uniformly.)
+    * ``loop_time``: the seconds of closed loop those states are drawn from.
 
     Optimiser:
 
@@ -113,6 +119,8 @@ class TrainConfig:
     n_flow: int = 10000
     n_boundary: int = 1600
     n_origin: int = 1600
+    loop_share: float = 0.0
+    loop_time: float = 1.5
     phases: tuple[Phase, ...] = (LevenbergMarquardt(),)
     max_time: float | None = None
     warm_start: bool = True
@@ -139,6 +147,8 @@ class TrainConfig:
                 "log_every": (integer(self.log_every, 1), "an integer >= 1"),
                 "retries": (integer(self.retries, 0), "an integer >= 0"),
                 "retry_factor": (real(self.retry_factor, 1), "a finite number >= 1"),
+                "loop_share": (real(self.loop_share, 0) and self.loop_share < 1, "a number in [0, 1)"),
+                "loop_time": (real(self.loop_time, 0, low_open=True), "a number of seconds > 0"),
                 "max_time": (
                     real(self.max_time, 0, low_open=True, none=True, inf=True),
                     "a number of seconds > 0 or None",
@@ -290,7 +300,7 @@ def _refuse_flat_fields(changes: dict) -> None:
 
 
 #: Fields added after checkpoints were first stored: :meth:`TrainConfig.to_dict` writes them only when set.
-_ADDED_LATER = ("flat_origin", "retries", "retry_factor")
+_ADDED_LATER = ("flat_origin", "retries", "retry_factor", "loop_share", "loop_time")
 
 #: From this state dimension on, the default recipe widens its network (:func:`default_network`).
 WIDE_FROM = 6

@@ -5,7 +5,9 @@
   (every case of the book), else by seeded Monte Carlo with its standard error;
 * :func:`optimality_errors`: errors of V and mu against a known V*, mu*;
 * :func:`closed_loop`: simulate the policy and accumulate the cost :eq:`eq-cost`, so that a policy is judged by
-  what it does; :func:`infinite_horizon_cost` adds the cost still to come after the run.
+  what it does; :func:`infinite_horizon_cost` adds the cost still to come after the run;
+* :func:`residual_along_loop`: where a learned value's error comes from, without a reference: along the closed
+  loop of its own policy, ``V(x0) = J_T + V(x(T)) - int_0^T E_e(x(t)) dt`` exactly.
 
 A ``value_fn`` is a batched torch callable x (N, n) -> V(x) (N,), differentiable in x; points are float64 on
 the CPU (the solution objects move them to their own device and precision and back).
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.integrate import simpson
 
 from . import lq
 from .pinn import gradient
@@ -37,6 +40,8 @@ __all__ = [
     "closed_loop",
     "ClosedLoopResult",
     "infinite_horizon_cost",
+    "residual_along_loop",
+    "LoopResidual",
     "quadratic_fields",
     "GRID_MAX_POINTS",
     "MC_SAMPLES",
@@ -333,6 +338,64 @@ def infinite_horizon_cost(system, run: ClosedLoopResult) -> tuple[np.ndarray, np
     bad = ~np.isfinite(cost)
     cost[bad], tail[bad] = np.inf, np.inf
     return cost, tail
+
+
+@dataclass(frozen=True)
+class LoopResidual:
+    """A value function's residual along the closed loops of its own policy (:func:`residual_along_loop`).
+
+    * ``run``: the :class:`ClosedLoopResult` (times, states, inputs, cost J to ``t_final``).
+    * ``residual``: (K+1, N), E_e :eq:`eq-ee` at every state of every loop.
+    * ``value_start``, ``value_end``: (N,), V(x0) and V(x(t_final)).
+    * ``outside``: (K+1, N) bool, the state outside the training box.
+    """
+
+    run: ClosedLoopResult
+    residual: np.ndarray
+    value_start: np.ndarray
+    value_end: np.ndarray
+    outside: np.ndarray
+
+    @property
+    def gap(self) -> np.ndarray:
+        """``J_T + V(x(T)) - V(x0)`` (N,): what the value misses of the cost its own policy pays."""
+        return self.run.cost + self.value_end - self.value_start
+
+    @property
+    def integral(self) -> np.ndarray:
+        """``int_0^T E_e(x(t)) dt`` (N,) by Simpson's rule: equal to :attr:`gap` up to the quadrature."""
+        return simpson(self.residual, x=self.run.t, axis=0)
+
+    @property
+    def integral_outside(self) -> np.ndarray:
+        """The part of :attr:`integral` accrued while the loop is outside the training box (N,)."""
+        return simpson(np.where(self.outside, self.residual, 0.0), x=self.run.t, axis=0)
+
+
+def residual_along_loop(system, value_fn: ValueFn, x0, t_final: float = 20.0, dt: float = 0.01) -> LoopResidual:
+    """The residual E_e :eq:`eq-ee` of ``value_fn`` along the closed loops of its own policy, from ``x0``.
+
+    That policy attains the minimum in E_e, so along its loop ``dV/dt = E_e - Q - u'Ru``, and integrating,
+    ``V(x0) = J_T + V(x(T)) - int_0^T E_e dt``: the value misses the cost its policy pays by the residual
+    integrated along the loop. With ``J_T + V(x(T))`` close to V* (a good policy is optimal to second order),
+    this accounts for the value error at ``x0`` without a reference, and ``outside`` tells how much of it
+    accrues where the loop leaves the training box, where no residual was trained.
+
+    * ``system``: the control-affine system.
+    * ``value_fn``: V, a batched torch callable (N, n) -> (N,).
+    * ``x0``: (N, n) initial states.
+    * ``t_final``, ``dt``: as in :func:`closed_loop`.
+
+    Returns a :class:`LoopResidual`.
+    """
+    run = closed_loop(system, policy_of(system, value_fn), x0, t_final=t_final, dt=dt)
+    states = torch.as_tensor(run.x.reshape(-1, system.n))
+    residual = SteadyStateHJB(system, value_fn).field(states).numpy().reshape(run.x.shape[:2])
+    with torch.no_grad():
+        ends = value_fn(torch.as_tensor(run.x[[0, -1]].reshape(-1, system.n))).numpy().reshape(2, -1)
+    box = system.train_domain
+    outside = np.any((run.x < box[:, 0]) | (run.x > box[:, 1]), axis=-1)
+    return LoopResidual(run=run, residual=residual, value_start=ends[0], value_end=ends[1], outside=outside)
 
 
 def quadratic_fields(A, B, Q, R, P, x) -> dict:

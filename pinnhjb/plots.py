@@ -29,6 +29,7 @@ __all__ = [
     "grouped_bars",
     "value_slices",
     "manoeuvres",
+    "loop_residual",
     "against_dimension",
 ]
 
@@ -418,6 +419,42 @@ def value_slices(sol, planes, points, errors, labels, points_per_dim: int = 41):
             ax.set_ylim(*sol.system.domain[j])
             ax.set_xlabel(labels[i])
             ax.set_ylabel(labels[j], labelpad=0)
+    fig.tight_layout()
+    return fig
+
+
+def loop_residual(loops, box, which, t_max=None):
+    """The residual E_e along closed loops (top) and how far each loop is from the training box's centre (bottom).
+
+    * ``loops``: a :class:`pinnhjb.metrics.LoopResidual`.
+    * ``box``: (n, 2), the training box; the bottom panel shows max_i abs(x_i - centre_i) / halfwidth_i, above 1
+      outside it; the top panel shades where the loop is outside.
+    * ``which``: the indices of the loops to draw.
+    * ``t_max``: the last time shown; None: the whole run.
+    """
+    box = np.asarray(box, dtype=float)
+    t, x = loops.run.t, loops.run.x
+    centre, half = box.mean(axis=1), (box[:, 1] - box[:, 0]) / 2
+    reach = np.abs((x - centre) / half).max(axis=-1)
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(WIDTH, 5.2), sharex=True, height_ratios=(3, 2))
+    for c, k in enumerate(which):
+        colour = f"C{c}"
+        top.plot(t, loops.residual[:, k], color=colour, label=f"loop {c + 1}")
+        top.fill_between(
+            t, 0, loops.residual[:, k], where=loops.outside[:, k], color=colour, alpha=0.3, lw=0, interpolate=True
+        )
+        bottom.plot(t, reach[:, k], color=colour)
+    top.axhline(0, color="k", lw=0.6)
+    top.set_ylabel(r"$E_e(x(t))$")
+    top.legend(frameon=False)
+    top.set_title("shaded: the loop is outside the training box")
+    bottom.axhline(1, color="k", ls="--", lw=0.8)
+    bottom.set_ylabel("largest coordinate\n/ box half-width")
+    bottom.set_xlabel("$t$ (s)")
+    for ax in (top, bottom):
+        ax.grid(alpha=0.3)
+    if t_max is not None:
+        bottom.set_xlim(0, t_max)
     fig.tight_layout()
     return fig
 

@@ -144,6 +144,18 @@ class _ValueSolution:
             self.system, _metrics.policy_of(self.system, self._value_fn(0.0)), x0, t_final=t_final, dt=dt
         )
 
+    def residual_along_loop(self, x0, t_final: float = 20.0, dt: float = 0.01) -> _metrics.LoopResidual:
+        """E_e :eq:`eq-ee` of V(., 0) along the closed loops of mu(., 0) from ``x0``, by
+        :func:`pinnhjb.metrics.residual_along_loop`: its ``gap``, ``J_T + V(x(T)) - V(x0)``, is the residual
+        integrated along each loop, and ``integral_outside`` the part accrued outside the training box.
+
+        * ``x0``: (N, n) initial states.
+        * ``t_final``, ``dt``: as in :meth:`closed_loop`.
+
+        Returns a :class:`~pinnhjb.metrics.LoopResidual`.
+        """
+        return _metrics.residual_along_loop(self.system, self._value_fn(0.0), x0, t_final=t_final, dt=dt)
+
 
 @dataclass(frozen=True)
 class Stage:

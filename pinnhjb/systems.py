@@ -714,7 +714,7 @@ RIGID_BODY_CONSTANTS = MappingProxyType(
 )
 
 
-def rigid_body() -> ControlAffineSystem:
+def rigid_body(train_scale=None) -> ControlAffineSystem:
     """The 6-D rigid-body (satellite) attitude problem of Nakamura-Zimmerer, Gong & Kang (SIAM J. Sci. Comput. 2021).
 
     The constants and conventions are those of their code, Tenavi/HJB_NN ``examples/satellite/problem_def.py``
@@ -735,7 +735,11 @@ def rigid_body() -> ControlAffineSystem:
     Cost from their weights W1 = 1, W2 = 10, W3 = 0.5: ``Q(x) = W1/2 |v|^2 + W2/2 |w|^2 = |v|^2/2 + 5 |w|^2``,
     ``R = W3/2 I = I/4``. Omega = [-pi/3, pi/3]^3 x [-pi/4, pi/4]^3, their box of initial states; trained on Omega
     enlarged 1.1x (abs(theta) <= 1.1 pi/3 < pi/2, away from the Euler-angle singularity). V* is not known.
+
+    * ``train_scale``: the training box as Omega enlarged about the origin by this factor, one number or one per
+      coordinate, each >= 1, the pitch's below 1.5 (abs(theta) < pi/2); None: 1.1 for every coordinate.
     """
+    scale = _rigid_body_train_scale(train_scale)
     c = RIGID_BODY_CONSTANTS
     J_inv, Bw, h = np.asarray(c["J_inv"]), np.asarray(c["B"]), np.asarray(c["h"])
     w1, w2, w3 = c["W"]
@@ -766,10 +770,28 @@ def rigid_body() -> ControlAffineSystem:
         Q,
         w3 / 2 * np.eye(3),
         domain=omega,
-        train_domain=1.1 * omega,
-        params={},
+        train_domain=(1.1 if scale is None else np.asarray(scale)[:, None]) * omega,
+        params={} if scale is None else {"train_scale": scale},
         builder="rigid_body",
     )
+
+
+def _rigid_body_train_scale(train_scale) -> list[float] | None:
+    """:func:`rigid_body`'s ``train_scale`` checked and as six floats; None stays None (the default box)."""
+    if train_scale is None:
+        return None
+    try:
+        scale = np.broadcast_to(np.asarray(train_scale, dtype=float), (6,)).tolist()
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"train_scale must be one number or six; got {train_scale!r}") from exc
+    if not all(np.isfinite(a) and a >= 1.0 for a in scale):
+        raise ValueError(f"train_scale must be >= 1 (the training box contains Omega); got {scale}")
+    if scale[1] * np.pi / 3 >= np.pi / 2:
+        raise ValueError(
+            f"train_scale for the pitch theta must be below 1.5 (abs(theta) < pi/2, where the Euler angles are "
+            f"singular); got {scale[1]}"
+        )
+    return scale
 
 
 def lq_ladder(k: int) -> ControlAffineSystem:

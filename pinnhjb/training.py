@@ -7,7 +7,8 @@ The loss is the paper's :eq:`eq-mse`: MSE_e (flow residual F_e, :eq:`eq-fe`) + M
 This module builds a stage's loss and samplers (an :class:`~pinnhjb.optimizers.Objective`) and runs the config's
 optimiser phases on it (:mod:`pinnhjb.optimizers`); the residuals and their Jacobians are the objects of
 :mod:`pinnhjb.residuals`. f, g, Q and the terminal cost phi (with its gradient) are evaluated once per stage on a
-pool of states and then indexed, so a frozen chain of previous stages costs nothing per step.
+pool of states and then indexed, so a frozen chain of previous stages costs nothing per step. The pool is uniform
+in the training box, or partly along closed loops from Omega (``TrainConfig.loop_share``, :func:`loop_states`).
 """
 
 from __future__ import annotations
@@ -16,8 +17,10 @@ from dataclasses import dataclass, field
 
 import torch
 
+from . import lq
 from .config import TrainConfig
 from .gauss_newton import FlatParameters
+from .metrics import closed_loop
 from .optimizers import Objective, Tracker
 from .pinn import FiniteHorizonValue, SteadyStateValue, ValueTerminalCost, gradient
 from .residuals import Residual, get_residual
@@ -29,6 +32,7 @@ __all__ = [
     "StatePool",
     "run_phases",
     "shared_times",
+    "loop_states",
     "train_finite_horizon",
     "train_steady_state",
     "resolve_device",
@@ -203,6 +207,32 @@ def _uniform(gen, size: int, scale: float, dtype, device) -> Tensor:
     return (scale * torch.rand(size, generator=gen, dtype=torch.float64)).to(dtype=dtype, device=device)
 
 
+def loop_states(system, count: int, generator, duration: float, dt: float = 0.01, dtype=torch.float64, device=None):
+    """States along closed loops from Omega: ``count`` uniform states of Omega, each flown for ``duration``
+    seconds under the LQR policy of the system's linearisation (RK4, :func:`pinnhjb.metrics.closed_loop`) and
+    taken at a uniform time of its own loop. A loop that blew up gives a uniform state of the training box instead.
+
+    * ``system``: the control-affine system; its linearisation must be stabilisable (:func:`pinnhjb.lq.care`).
+    * ``count``: how many states.
+    * ``generator``: the CPU torch generator that draws the starts and the times.
+    * ``duration``: the seconds of each loop.
+    * ``dt``: the RK4 step.
+    * ``dtype``, ``device``: of the result.
+
+    Returns (count, n).
+    """
+    lin = system.linearize()
+    gain = torch.as_tensor(lq.lqr_gain(lin.B, system.R, lq.care(lin.A, lin.B, lin.Q, system.R)))
+    starts = system.sample(count, generator, dtype=torch.float64, box=system.domain)
+    run = closed_loop(system, lambda x: -x @ gain.T, starts, t_final=duration, dt=dt)
+    when = torch.randint(run.x.shape[0], (count,), generator=generator)
+    states = torch.as_tensor(run.x[when.numpy(), range(count)])
+    bad = ~torch.isfinite(states).all(dim=-1)
+    if bad.any():
+        states[bad] = system.sample(int(bad.sum()), generator, dtype=torch.float64)
+    return states.to(dtype=dtype, device=device)
+
+
 def shared_times(gen, size: int, points_per_time: int, T: float, dtype, device) -> tuple[Tensor, tuple]:
     """Collocation times in [0, T], each of ceil(size / points_per_time) fresh times shared by that many points.
 
@@ -275,9 +305,11 @@ def train_finite_horizon(
     T = model.horizon
     terminal = model.terminal_cost
     n_pool = config.pool_size if config.sampling == "resample" else config.n_flow
-    pool = StatePool(
-        system, system.sample(n_pool, gen, dtype=dtype, device=device), terminal, need_phi_grad=model.ansatz
-    )
+    states = system.sample(n_pool, gen, dtype=dtype, device=device)
+    if config.loop_share > 0:
+        k = int(round(config.loop_share * n_pool))
+        states[:k] = loop_states(system, k, gen, config.loop_time, dtype=dtype, device=device)
+    pool = StatePool(system, states, terminal, need_phi_grad=model.ansatz)
     bnd = None
     if not model.ansatz:
         n_b = config.n_boundary if config.sampling == "fixed" else config.pool_size

@@ -45,7 +45,7 @@ def test_dimension_rows_are_the_same_in_workers(tmp_path):
     assert [c["T"] for c in row["chain"]] == [0.5] and row["chain"][0]["rejected_losses"] == []
     assert 0 < row["horizon_floor"] < 1  # V_0.5 is far from V*, whatever the network
     dimension = _module("dimension")
-    for bad in (["--workers", "0"], ["--retries", "-1"]):
+    for bad in (["--workers", "0"], ["--retries", "-1"], ["--loop-share", "1"]):
         with pytest.raises(SystemExit):  # refused before any run
             dimension.main([*tiny, "--out", str(tmp_path / "bad"), *bad])
 

@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from scipy.integrate import simpson
 
 import pinnhjb as ph
 from pinnhjb import lq, metrics
@@ -61,6 +62,31 @@ def test_closed_loop_checks_arguments(lq_system):
         metrics.closed_loop(lq_system, lq_system.policy_star, X0, dt=-0.1)
     with pytest.raises(ValueError, match="shape"):
         metrics.closed_loop(lq_system, lq_system.policy_star, np.zeros((2, 3)))
+
+
+def test_residual_along_loop_integrates_to_the_value_gap(lq_system):
+    # V = x'(P + D)x: along its own policy's loops E_e is the ARE residual's quadratic form, and
+    # V(x0) = J_T + V(x(T)) - int E_e dt holds for any V; for V* itself (D = 0) both sides vanish
+    P = lq.care(A, B, Q, R)
+    gaps = []
+    for D in (np.zeros((2, 2)), np.array([[0.3, -0.1], [-0.1, 0.2]])):
+        M = torch.as_tensor(P + D)
+        loops = metrics.residual_along_loop(
+            lq_system, lambda x: torch.einsum("bi,ij,bj->b", x, M, x), X0, t_final=8.0, dt=0.005
+        )
+        assert loops.residual.shape == loops.outside.shape == (1601, 4)
+        fields = metrics.quadratic_fields(A, B, Q, R, P + D, loops.run.x.reshape(-1, 2))
+        np.testing.assert_allclose(loops.residual, fields["residual"].reshape(1601, 4), atol=1e-12)
+        np.testing.assert_allclose(loops.value_start, fields["value"][:4], rtol=1e-12)
+        np.testing.assert_allclose(loops.gap, loops.integral, atol=1e-6)
+        box = lq_system.train_domain
+        outside = np.any((loops.run.x < box[:, 0]) | (loops.run.x > box[:, 1]), axis=-1)
+        np.testing.assert_array_equal(loops.outside, outside)
+        inside_only = simpson(np.where(outside, 0.0, loops.residual), x=loops.run.t, axis=0)
+        np.testing.assert_allclose(loops.integral_outside + inside_only, loops.integral, atol=1e-12)
+        gaps.append(np.abs(loops.gap))
+    assert gaps[0].max() < 1e-6 and gaps[1].min() > 1e3 * gaps[0].max()
+    assert loops.outside.any() and not loops.outside.all()  # X0 has loops that leave the box, and ones that stay
 
 
 @pytest.mark.parametrize("name", ["lq", "quartic"])

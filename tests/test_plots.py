@@ -67,3 +67,17 @@ def test_grouped_bars_draw_each_value_and_mark_the_missing():
     plt.close(fig)
     with pytest.raises(ValueError, match="empty"):
         plots.grouped_bars({}, "s")
+
+
+def test_loop_residual_shades_where_the_loops_leave_the_box():
+    A, B = np.array([[1.0, 1.0], [0.0, 2.0]]), np.array([[0.0], [1.0]])
+    system = ph.systems.linear_quadratic(A, B, np.eye(2), np.eye(1), domain=[[-1, 1], [-1, 1]])
+    P = ph.lq.care(A, B, np.eye(2), np.eye(1)) + 0.2 * np.eye(2)
+    loops = ph.metrics.residual_along_loop(
+        system, lambda x: ((x @ ph.pinn.torch.as_tensor(P)) * x).sum(-1), np.array([[1.0, 1.0], [0.1, 0.0]]), 4.0
+    )
+    fig = plots.loop_residual(loops, system.train_domain, [0, 1], t_max=3.0)
+    top, bottom = fig.axes
+    assert len(top.lines) >= 2 and len(top.collections) == 2  # a curve and a shading per loop
+    assert bottom.get_xlim() == (0.0, 3.0) and bottom.get_xlabel() == "$t$ (s)"
+    plt.close(fig)

@@ -136,6 +136,27 @@ def test_rigid_body_boxes_weights_and_shapes(body):
     assert body.value_star is None and body.policy_star is None
 
 
+def test_rigid_body_train_scale_sets_the_training_box_and_is_rebuilt_from_a_checkpoint(body, tmp_path):
+    wide = rigid_body([1.5, 1.25, 1.5, 1.1, 1.1, 1.1])
+    np.testing.assert_allclose(wide.train_domain[:, 1], body.domain[:, 1] * [1.5, 1.25, 1.5, 1.1, 1.1, 1.1])
+    np.testing.assert_allclose(rigid_body(1.2).train_domain, 1.2 * body.domain)
+    assert rigid_body().spec()["params"] == {}  # the default box: checkpoints made before the option load as before
+    assert fingerprint_difference(wide.fingerprint(), body.fingerprint()) == ["train_domain"]
+    config = ph.TrainConfig.preset("quick", phases=(), eval_points_per_dim=2)
+    with pytest.warns(RuntimeWarning):  # nothing trained
+        sol = ph.FiniteHorizonSolver(wide, config, progress=False).solve(0.1)
+    assert np.array_equal(ph.load(ph.save(sol, tmp_path / "wide.pt")).system.train_domain, wide.train_domain)
+
+
+@pytest.mark.parametrize(
+    ("scale", "match"),
+    [(0.9, ">= 1"), ([1.1, 1.1], "one number or six"), (1.5, "below 1.5"), (float("nan"), ">= 1"), ("x", "six")],
+)
+def test_rigid_body_train_scale_refuses_bad_boxes(scale, match):
+    with pytest.raises(ValueError, match=match):
+        rigid_body(scale)
+
+
 def test_rigid_body_finite_on_training_box(body):
     x = torch.cat([uniform(body, 4000, 1), corners(body.train_domain)])
     for key in ("f", "g", "Q"):

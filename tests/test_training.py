@@ -318,6 +318,9 @@ def test_steady_state_solver(pendulum):
         ("retries", 1.5),
         ("retry_factor", 0.5),
         ("retry_factor", float("nan")),
+        ("loop_share", -0.1),
+        ("loop_share", 1.0),
+        ("loop_time", 0.0),
     ],
 )
 def test_train_config_rejects_bad_fields(field, value):
@@ -466,3 +469,44 @@ def test_rejected_attempts_are_saved_and_loaded(pendulum, monkeypatch, tmp_path)
     loaded = ph.load(ph.save(sol, tmp_path / "retried.pt"), pendulum)
     assert loaded.stages[0].rejected == sol.stages[0].rejected and len(loaded.stages[0].rejected) == 1
     assert loaded.config.retries == 1
+
+
+# ------------------------------------------------------------------------------ states along loops (loop_share)
+def test_loop_states_lie_on_lqr_loops_from_omega():
+    # an LQ system, so the loops are those of the optimal policy: V* = x'Px never rises along them, and none
+    # ends above V*'s largest value on Omega (at a corner), while some leave Omega (the open loop is unstable)
+    A, B = np.array([[1.0, 1.0], [0.0, 2.0]]), np.array([[0.0], [1.0]])
+    system = ph.systems.linear_quadratic(A, B, np.eye(2), np.eye(1), domain=[[-1, 1], [-1, 1]])
+    gen = torch.Generator().manual_seed(3)
+    x = ph.training.loop_states(system, 500, gen, 1.0).numpy()
+    assert x.shape == (500, 2) and np.isfinite(x).all()
+    P = ph.lq.care(A, B, np.eye(2), np.eye(1))
+    corners = np.array([[1.0, 1.0], [1.0, -1.0]])
+    top = np.einsum("bi,ij,bj->b", corners, P, corners).max()
+    assert np.einsum("bi,ij,bj->b", x, P, x).max() <= top * (1 + 1e-9)
+    assert (np.abs(x) > 1).any(axis=1).sum() > 0
+    again = ph.training.loop_states(system, 500, torch.Generator().manual_seed(3), 1.0).numpy()
+    np.testing.assert_array_equal(x, again)
+
+
+@pytest.mark.filterwarnings("ignore:stage 1:RuntimeWarning")  # nothing is trained: only the pools are compared
+def test_loop_share_replaces_a_share_of_the_pool(pendulum, monkeypatch):
+    pools = []
+    real = ph.training.StatePool.__init__
+
+    def spy(self, system, states, *args, **kwargs):
+        pools.append(states.clone())
+        real(self, system, states, *args, **kwargs)
+
+    monkeypatch.setattr(ph.training.StatePool, "__init__", spy)
+    solver(system=pendulum, phases=()).solve(0.5)
+    solver(system=pendulum, phases=(), loop_share=0.25, loop_time=2.0).solve(0.5)
+    uniform, looped = pools
+    k = round(0.25 * len(uniform))
+    assert torch.equal(uniform[k:], looped[k:])  # the same uniform states, but the first quarter along loops
+    assert not torch.equal(uniform[:k], looped[:k])
+    box = torch.as_tensor(pendulum.train_domain)
+    assert ((uniform >= box[:, 0]) & (uniform <= box[:, 1])).all()
+    config = ph.TrainConfig.preset("quick", loop_share=0.25)
+    assert ph.TrainConfig.from_dict(config.to_dict()) == config
+    assert "loop_share" not in ph.TrainConfig().to_dict()  # stored configs read back unchanged
