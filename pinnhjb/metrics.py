@@ -346,7 +346,7 @@ class LoopResidual:
 
     * ``run``: the :class:`ClosedLoopResult` (times, states, inputs, cost J to ``t_final``).
     * ``residual``: (K+1, N), E_e :eq:`eq-ee` at every state of every loop.
-    * ``value_start``, ``value_end``: (N,), V(x0) and V(x(t_final)).
+    * ``value_start``, ``value_end``: (N,), V at each loop's first and last state.
     * ``outside``: (K+1, N) bool, the state outside the training box.
     """
 
