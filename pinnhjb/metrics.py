@@ -347,7 +347,8 @@ class LoopResidual:
     * ``run``: the :class:`ClosedLoopResult` (times, states, inputs, cost J to ``t_final``).
     * ``residual``: (K+1, N), E_e :eq:`eq-ee` at every state of every loop.
     * ``value_start``, ``value_end``: (N,), V at each loop's first and last state.
-    * ``outside``: (K+1, N) bool, the state outside the training box.
+    * ``outside``: (K+1, N) bool, the state outside the training box
+      (:meth:`~pinnhjb.systems.ControlAffineSystem.outside_training_box`).
     """
 
     run: ClosedLoopResult
@@ -393,9 +394,9 @@ def residual_along_loop(system, value_fn: ValueFn, x0, t_final: float = 20.0, dt
     residual = SteadyStateHJB(system, value_fn).field(states).numpy().reshape(run.x.shape[:2])
     with torch.no_grad():
         ends = value_fn(torch.as_tensor(run.x[[0, -1]].reshape(-1, system.n))).numpy().reshape(2, -1)
-    box = system.train_domain
-    outside = np.any((run.x < box[:, 0]) | (run.x > box[:, 1]), axis=-1)
-    return LoopResidual(run=run, residual=residual, value_start=ends[0], value_end=ends[1], outside=outside)
+    return LoopResidual(
+        run=run, residual=residual, value_start=ends[0], value_end=ends[1], outside=system.outside_training_box(run.x)
+    )
 
 
 def quadratic_fields(A, B, Q, R, P, x) -> dict:

@@ -263,6 +263,17 @@ class ControlAffineSystem:
     def R_inv_tensor(self, like: Tensor) -> Tensor:
         return torch.as_tensor(self._R_inv, dtype=like.dtype, device=like.device)
 
+    def outside_training_box(self, x) -> np.ndarray:
+        """Whether each state lies outside the training box, where no residual is trained.
+
+        * ``x``: states (..., n), anything numpy reads (e.g. the (K+1, N, n) states of a closed loop).
+
+        Returns a bool array of shape (...).
+        """
+        x = np.asarray(x, dtype=float)
+        box = self.train_domain
+        return np.any((x < box[:, 0]) | (x > box[:, 1]), axis=-1)
+
     def check_states(self, x: Tensor, what: str = "x") -> Tensor:
         """Validate a batch of states: a tensor of shape (N, n) with finite entries.
 
