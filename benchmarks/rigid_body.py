@@ -169,6 +169,12 @@ def main(argv=None) -> int:
     )
     p.add_argument("--loop-time", type=float, default=1.5, help="seconds of loop they are drawn from (loop_time)")
     p.add_argument(
+        "--loop-policy",
+        choices=ph.config.LOOP_POLICIES,
+        default="lqr",
+        help="whose loops: the linearisation's LQR policy, or each stage's terminal cost's (loop_policy)",
+    )
+    p.add_argument(
         "--train-scale",
         type=lambda a: [float(b) for b in a.split(",")],
         default=None,
@@ -199,7 +205,7 @@ def main(argv=None) -> int:
     if args.flat_origin:
         config = config.replace(flat_origin=True)
     try:
-        config = config.replace(loop_share=args.loop_share, loop_time=args.loop_time)
+        config = config.replace(loop_share=args.loop_share, loop_time=args.loop_time, loop_policy=args.loop_policy)
     except ValueError as exc:
         p.error(str(exc))
     if args.points is not None:
@@ -276,10 +282,11 @@ def _loops(config: dict) -> str:
     share = config.get("loop_share", 0.0)
     if not share:
         return ""
-    return (
-        f", {share:.0%} of the training states along {config.get('loop_time', 1.5):g} s of the linearisation's LQR "
-        f"loops from Omega (loop_share)"
-    )
+    whose = {
+        "lqr": "the linearisation's LQR loops",
+        "terminal": "the loops of each stage's terminal cost's policy (the previous stage's value)",
+    }[config.get("loop_policy", "lqr")]
+    return f", {share:.0%} of the training states along {config.get('loop_time', 1.5):g} s of {whose} from Omega (loop_share)"
 
 
 def _scale(scale) -> str:

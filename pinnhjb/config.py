@@ -82,6 +82,9 @@ class TrainConfig:
       residual along the optimal loops, which can leave the training box; 0: all uniform. (The finite-horizon
       solver's pool; the steady-state baseline samples uniformly.)
     * ``loop_time``: the seconds of closed loop those states are drawn from.
+    * ``loop_policy``: whose loops: ``"lqr"``, the linearisation's LQR policy; ``"terminal"``, the policy of the
+      stage's terminal cost, which in a chain is the previous stage's learned value, so that the states follow
+      the learned loops as they overshoot (a stage with terminal cost 0 falls back to the LQR loops).
 
     Optimiser:
 
@@ -121,6 +124,7 @@ class TrainConfig:
     n_origin: int = 1600
     loop_share: float = 0.0
     loop_time: float = 1.5
+    loop_policy: str = "lqr"
     phases: tuple[Phase, ...] = (LevenbergMarquardt(),)
     max_time: float | None = None
     warm_start: bool = True
@@ -149,6 +153,7 @@ class TrainConfig:
                 "retry_factor": (real(self.retry_factor, 1), "a finite number >= 1"),
                 "loop_share": (real(self.loop_share, 0) and self.loop_share < 1, "a number in [0, 1)"),
                 "loop_time": (real(self.loop_time, 0, low_open=True), "a number of seconds > 0"),
+                "loop_policy": (self.loop_policy in LOOP_POLICIES, " or ".join(map(repr, LOOP_POLICIES))),
                 "max_time": (
                     real(self.max_time, 0, low_open=True, none=True, inf=True),
                     "a number of seconds > 0 or None",
@@ -300,7 +305,10 @@ def _refuse_flat_fields(changes: dict) -> None:
 
 
 #: Fields added after checkpoints were first stored: :meth:`TrainConfig.to_dict` writes them only when set.
-_ADDED_LATER = ("flat_origin", "retries", "retry_factor", "loop_share", "loop_time")
+_ADDED_LATER = ("flat_origin", "retries", "retry_factor", "loop_share", "loop_time", "loop_policy")
+
+#: The policies whose closed loops ``TrainConfig.loop_share`` draws training states along.
+LOOP_POLICIES = ("lqr", "terminal")
 
 #: From this state dimension on, the default recipe widens its network (:func:`default_network`).
 WIDE_FROM = 6

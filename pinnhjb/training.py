@@ -20,9 +20,9 @@ import torch
 from . import lq
 from .config import TrainConfig
 from .gauss_newton import FlatParameters
-from .metrics import closed_loop
+from .metrics import closed_loop, policy_of
 from .optimizers import Objective, Tracker
-from .pinn import FiniteHorizonValue, SteadyStateValue, ValueTerminalCost, gradient
+from .pinn import FiniteHorizonValue, SteadyStateValue, ValueTerminalCost, ZeroTerminalCost, gradient
 from .residuals import Residual, get_residual
 
 Tensor = torch.Tensor
@@ -207,24 +207,34 @@ def _uniform(gen, size: int, scale: float, dtype, device) -> Tensor:
     return (scale * torch.rand(size, generator=gen, dtype=torch.float64)).to(dtype=dtype, device=device)
 
 
-def loop_states(system, count: int, generator, duration: float, dt: float = 0.01, dtype=torch.float64, device=None):
+def loop_states(
+    system, count: int, generator, duration: float, dt: float = 0.01, dtype=torch.float64, device=None, policy=None
+):
     """States along closed loops from Omega: ``count`` uniform states of Omega, each flown for ``duration``
-    seconds under the LQR policy of the system's linearisation (RK4, :func:`pinnhjb.metrics.closed_loop`) and
-    taken at a uniform time of its own loop. A loop that blew up gives a uniform state of the training box instead.
+    seconds under ``policy`` (RK4, :func:`pinnhjb.metrics.closed_loop`) and taken at a uniform time of its own
+    loop. A loop that blew up gives a uniform state of the training box instead.
 
-    * ``system``: the control-affine system; its linearisation must be stabilisable (:func:`pinnhjb.lq.care`).
+    * ``system``: the control-affine system; without ``policy`` its linearisation must be stabilisable
+      (:func:`pinnhjb.lq.care`).
     * ``count``: how many states.
     * ``generator``: the CPU torch generator that draws the starts and the times.
     * ``duration``: the seconds of each loop.
     * ``dt``: the RK4 step.
     * ``dtype``, ``device``: of the result.
+    * ``policy``: a batched callable x (N, n) -> u (N, m) on float64 CPU states, such as
+      :func:`pinnhjb.metrics.policy_of` a learned value; None: the LQR policy of the system's linearisation.
 
     Returns (count, n).
     """
-    lin = system.linearize()
-    gain = torch.as_tensor(lq.lqr_gain(lin.B, system.R, lq.care(lin.A, lin.B, lin.Q, system.R)))
+    if policy is None:
+        lin = system.linearize()
+        gain = torch.as_tensor(lq.lqr_gain(lin.B, system.R, lq.care(lin.A, lin.B, lin.Q, system.R)))
+
+        def policy(x):
+            return -x @ gain.T
+
     starts = system.sample(count, generator, dtype=torch.float64, box=system.domain)
-    run = closed_loop(system, lambda x: -x @ gain.T, starts, t_final=duration, dt=dt)
+    run = closed_loop(system, policy, starts, t_final=duration, dt=dt)
     when = torch.randint(run.x.shape[0], (count,), generator=generator)
     states = torch.as_tensor(run.x[when.numpy(), range(count)])
     bad = ~torch.isfinite(states).all(dim=-1)
@@ -278,6 +288,17 @@ def _residual(system, model, residual, default: str) -> Residual:
     return form(system, model)
 
 
+def _loop_policy(system, config: TrainConfig, terminal, dtype, device):
+    """The policy whose loops ``config.loop_share`` follows (``config.loop_policy``), called on float64 CPU
+    states; None: the linearisation's LQR policy (also for a terminal cost 0, whose policy is u = 0).
+
+    * ``terminal``: the stage's terminal cost, evaluated in ``dtype`` on ``device`` (the stage's network's)."""
+    if config.loop_policy == "lqr" or terminal is None or isinstance(terminal, ZeroTerminalCost):
+        return None
+    mu = policy_of(system, terminal)
+    return lambda x: mu(x.to(dtype=dtype, device=device)).to(dtype=torch.float64, device="cpu")
+
+
 def train_finite_horizon(
     system,
     model: FiniteHorizonValue,
@@ -308,7 +329,9 @@ def train_finite_horizon(
     states = system.sample(n_pool, gen, dtype=dtype, device=device)
     if config.loop_share > 0:
         k = int(round(config.loop_share * n_pool))
-        states[:k] = loop_states(system, k, gen, config.loop_time, dtype=dtype, device=device)
+        states[:k] = loop_states(
+            system, k, gen, config.loop_time, dtype=dtype, device=device, policy=_loop_policy(system, config, terminal, dtype, device)
+        )
     pool = StatePool(system, states, terminal, need_phi_grad=model.ansatz)
     bnd = None
     if not model.ansatz:

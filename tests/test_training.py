@@ -321,6 +321,7 @@ def test_steady_state_solver(pendulum):
         ("loop_share", -0.1),
         ("loop_share", 1.0),
         ("loop_time", 0.0),
+        ("loop_policy", "optimal"),
     ],
 )
 def test_train_config_rejects_bad_fields(field, value):
@@ -510,3 +511,29 @@ def test_loop_share_replaces_a_share_of_the_pool(pendulum, monkeypatch):
     config = ph.TrainConfig.preset("quick", loop_share=0.25)
     assert ph.TrainConfig.from_dict(config.to_dict()) == config
     assert "loop_share" not in ph.TrainConfig().to_dict()  # stored configs read back unchanged
+
+
+@pytest.mark.filterwarnings("ignore:stage:RuntimeWarning")  # nothing is trained: only the pools are compared
+def test_loop_policy_terminal_follows_the_terminal_costs_policy(monkeypatch):
+    # from x'Px of the CARE the terminal cost's policy is the LQR policy: the same loops to rounding; one stage
+    # on, the terminal cost is that stage's (untrained) value, whose loops differ
+    A, B = np.array([[0.0, 1.0], [-1.0, 0.5]]), np.array([[0.0], [1.0]])
+    system = ph.systems.linear_quadratic(A, B, np.eye(2), np.eye(1), domain=[[-1, 1], [-1, 1]])
+    P = ph.lq.care(A, B, np.eye(2), np.eye(1))
+    pools = []
+    real = ph.training.StatePool.__init__
+
+    def spy(self, system, states, *args, **kwargs):
+        pools.append(states.clone())
+        real(self, system, states, *args, **kwargs)
+
+    monkeypatch.setattr(ph.training.StatePool, "__init__", spy)
+    for policy in ("lqr", "terminal"):
+        s = solver(system=system, phases=(), loop_share=0.5, loop_policy=policy, dtype="float64")
+        s.extend(s.solve(0.5, terminal_cost=P), 1.0)
+    lqr, lqr_next, terminal, terminal_next = pools
+    k = len(lqr) // 2
+    torch.testing.assert_close(terminal, lqr, rtol=0, atol=1e-12)
+    assert torch.equal(terminal_next[k:], lqr_next[k:]) and not torch.allclose(terminal_next[:k], lqr_next[:k])
+    assert ph.TrainConfig.from_dict(ph.TrainConfig(loop_policy="terminal").to_dict()).loop_policy == "terminal"
+    assert "loop_policy" not in ph.TrainConfig().to_dict()
