@@ -65,17 +65,13 @@ def true_errors(system, sol, points: int, seed: int) -> dict:
 
 
 def horizon_floor(system, horizon: float, points: int, seed: int) -> float | None:
-    """For a linear system (the LQ ladder), the error that the horizon alone leaves: max abs(x'P_T x - V*) / max V*
-    over the states of :func:`true_errors`, with P_T the Riccati ODE's exact V_T(., 0) from the zero terminal cost
-    (:func:`pinnhjb.lq.riccati_ode`); None for a nonlinear system (no exact V_T)."""
+    """For a linear system (the LQ ladder), the error that the horizon alone leaves over the states of
+    :func:`true_errors` (:func:`pinnhjb.lq.horizon_gap`: the exact V_T(., 0) from the zero terminal cost against
+    V*); None for a nonlinear system (no exact V_T)."""
     if system.builder != "lq_ladder":
         return None
-    lin = system.linearize()
-    P_T = ph.lq.riccati_ode(lin.A, lin.B, lin.Q, system.R, horizon).at(0.0)
-    x = _states(system, points, seed).numpy()
-    v_star = system.value_star(torch.as_tensor(x)).numpy()
-    v_T = np.einsum("bi,ij,bj->b", x, P_T, x)
-    return float(np.abs(v_T - v_star).max() / np.abs(v_star).max())
+    A, B, Q = system.linearize()
+    return ph.lq.horizon_gap(A, B, Q, system.R, horizon, _states(system, points, seed).numpy())
 
 
 BUILDERS = {"lq_ladder": lambda n: ph.systems.lq_ladder(n // 2), "converse": ph.systems.converse}

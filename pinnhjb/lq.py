@@ -29,6 +29,7 @@ __all__ = [
     "riccati_ode",
     "RiccatiSolution",
     "convergence_bound",
+    "horizon_gap",
 ]
 
 Array = NDArray[np.float64]
@@ -382,6 +383,21 @@ def convergence_bound(
         "upper": float(np.max(np.abs(quad(high.at(0.0), x) - v_star))),
         "bound": float(max(np.max(quad(P_psi_, x_star_T)), np.max(quad(P_star, x_zero_T)))),
     }
+
+
+def horizon_gap(A: ArrayLike, B: ArrayLike, Q: ArrayLike, R: ArrayLike, horizon: float, x0: ArrayLike) -> float:
+    """What the horizon alone leaves of V*: ``max abs(V_T(x0, 0) - V*(x0)) / max V*(x0)`` for the terminal cost 0,
+    exact (V_T from :func:`riccati_ode`, V* from :func:`care`); a learned V_T can come no closer to V* than this.
+
+    * ``A``, ``B``, ``Q``, ``R``: the problem, as in :func:`care`.
+    * ``horizon``: T.
+    * ``x0``: (N, n) states; both maxima are over them.
+    """
+    A_, B_, Q_, R_ = _validate(A, B, Q, R)
+    x = np.asarray(x0, dtype=float)
+    v_star = np.einsum("ni,ij,nj->n", x, care(A_, B_, Q_, R_), x)
+    v_T = riccati_ode(A_, B_, Q_, R_, horizon).value(x, 0.0)
+    return float(np.abs(v_T - v_star).max() / np.abs(v_star).max())
 
 
 def riccati_ode(

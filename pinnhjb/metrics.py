@@ -347,15 +347,20 @@ class LoopResidual:
     * ``run``: the :class:`ClosedLoopResult` (times, states, inputs, cost J to ``t_final``).
     * ``residual``: (K+1, N), E_e :eq:`eq-ee` at every state of every loop.
     * ``value_start``, ``value_end``: (N,), V at each loop's first and last state.
-    * ``outside``: (K+1, N) bool, the state outside the training box
-      (:meth:`~pinnhjb.systems.ControlAffineSystem.outside_training_box`).
+    * ``reach``: (K+1, N), how far each state reaches from the training box's centre per half-width, above 1
+      outside the box (:meth:`~pinnhjb.systems.ControlAffineSystem.box_reach`).
     """
 
     run: ClosedLoopResult
     residual: np.ndarray
     value_start: np.ndarray
     value_end: np.ndarray
-    outside: np.ndarray
+    reach: np.ndarray
+
+    @property
+    def outside(self) -> np.ndarray:
+        """(K+1, N) bool: the state is outside the training box (``reach > 1``)."""
+        return self.reach > 1
 
     @property
     def gap(self) -> np.ndarray:
@@ -395,7 +400,7 @@ def residual_along_loop(system, value_fn: ValueFn, x0, t_final: float = 20.0, dt
     with torch.no_grad():
         ends = value_fn(torch.as_tensor(run.x[[0, -1]].reshape(-1, system.n))).numpy().reshape(2, -1)
     return LoopResidual(
-        run=run, residual=residual, value_start=ends[0], value_end=ends[1], outside=system.outside_training_box(run.x)
+        run=run, residual=residual, value_start=ends[0], value_end=ends[1], reach=system.box_reach(run.x)
     )
 
 

@@ -423,19 +423,15 @@ def value_slices(sol, planes, points, errors, labels, points_per_dim: int = 41):
     return fig
 
 
-def loop_residual(loops, box, which, t_max=None):
-    """The residual E_e along closed loops (top) and how far each loop is from the training box's centre (bottom).
+def loop_residual(loops, which, t_max=None):
+    """The residual E_e along closed loops (top, shaded where the loop is outside the training box) and how far
+    each loop reaches from the box's centre per half-width (bottom, ``loops.reach``: above 1 outside).
 
     * ``loops``: a :class:`pinnhjb.metrics.LoopResidual`.
-    * ``box``: (n, 2), the training box; the bottom panel shows max_i abs(x_i - centre_i) / halfwidth_i, above 1
-      outside it; the top panel shades where the loop is outside.
     * ``which``: the indices of the loops to draw.
     * ``t_max``: the last time shown; None: the whole run.
     """
-    box = np.asarray(box, dtype=float)
-    t, x = loops.run.t, loops.run.x
-    centre, half = box.mean(axis=1), (box[:, 1] - box[:, 0]) / 2
-    reach = np.abs((x - centre) / half).max(axis=-1)
+    t, reach = loops.run.t, loops.reach
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(WIDTH, 5.2), sharex=True, height_ratios=(3, 2))
     for c, k in enumerate(which):
         colour = f"C{c}"

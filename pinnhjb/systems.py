@@ -263,16 +263,27 @@ class ControlAffineSystem:
     def R_inv_tensor(self, like: Tensor) -> Tensor:
         return torch.as_tensor(self._R_inv, dtype=like.dtype, device=like.device)
 
+    def box_reach(self, x) -> np.ndarray:
+        """How far each state reaches from the training box's centre, per box half-width:
+        ``max_i abs(x_i - centre_i) / halfwidth_i``, above 1 outside the box.
+
+        * ``x``: states (..., n), anything numpy reads (e.g. the (K+1, N, n) states of a closed loop).
+
+        Returns a float array of shape (...).
+        """
+        x = np.asarray(x, dtype=float)
+        box = self.train_domain
+        centre, half = box.mean(axis=1), (box[:, 1] - box[:, 0]) / 2
+        return np.abs((x - centre) / half).max(axis=-1)
+
     def outside_training_box(self, x) -> np.ndarray:
-        """Whether each state lies outside the training box, where no residual is trained.
+        """Whether each state lies outside the training box, where no residual is trained (:meth:`box_reach` > 1).
 
         * ``x``: states (..., n), anything numpy reads (e.g. the (K+1, N, n) states of a closed loop).
 
         Returns a bool array of shape (...).
         """
-        x = np.asarray(x, dtype=float)
-        box = self.train_domain
-        return np.any((x < box[:, 0]) | (x > box[:, 1]), axis=-1)
+        return self.box_reach(x) > 1
 
     def check_states(self, x: Tensor, what: str = "x") -> Tensor:
         """Validate a batch of states: a tensor of shape (N, n) with finite entries.

@@ -253,6 +253,23 @@ def test_convergence_bound_holds_and_error_vanishes_with_the_horizon():
     assert all(b < a for a, b in zip(errors, errors[1:])) and errors[-1] < 1e-3
 
 
+def test_horizon_gap_is_the_scalar_closed_form_and_the_sandwichs_lower_end():
+    # scalar: with beta = sqrt(a^2 + q/r), P_T(0) = q sinh(beta T) / (beta cosh(beta T) - a sinh(beta T)) and
+    # P* = r (a + beta), so the gap is the same relative number at every state
+    a, q, r, T = 0.5, 2.0, 0.5, 1.5
+    beta = np.sqrt(a**2 + q / r)
+    p_T = q * np.sinh(beta * T) / (beta * np.cosh(beta * T) - a * np.sinh(beta * T))
+    p_star = r * (a + beta)
+    x = np.array([[0.3], [-1.0], [0.7]])
+    gap = lq.horizon_gap([[a]], [[1.0]], [[q]], [[r]], T, x)
+    assert gap == pytest.approx(abs(p_T - p_star) / p_star, rel=1e-8)
+    A = np.array([[0.0, 1.0], [2.0, -1.0]])
+    B, x0 = np.array([[0.0], [1.0]]), np.random.default_rng(0).uniform(-1, 1, (50, 2))
+    low = lq.convergence_bound(A, B, np.eye(2), np.eye(1), np.zeros((2, 2)), 2.0, x0)["lower"]
+    v_star = np.einsum("ni,ij,nj->n", x0, care(A, B, np.eye(2), np.eye(1)), x0)
+    assert lq.horizon_gap(A, B, np.eye(2), np.eye(1), 2.0, x0) == pytest.approx(low / v_star.max(), rel=1e-12)
+
+
 def test_transition_matches_simulated_closed_loop():
     A = np.array([[0.0, 1.0], [2.0, -1.0]])
     B = np.array([[0.0], [1.0]])

@@ -76,7 +76,7 @@ def test_loop_residual_shades_where_the_loops_leave_the_box():
     loops = ph.metrics.residual_along_loop(
         system, lambda x: ((x @ ph.pinn.torch.as_tensor(P)) * x).sum(-1), np.array([[1.0, 1.0], [0.1, 0.0]]), 4.0
     )
-    fig = plots.loop_residual(loops, system.train_domain, [0, 1], t_max=3.0)
+    fig = plots.loop_residual(loops, [0, 1], t_max=3.0)
     top, bottom = fig.axes
     assert len(top.lines) >= 2 and len(top.collections) == 2  # a curve and a shading per loop
     assert bottom.get_xlim() == (0.0, 3.0) and bottom.get_xlabel() == "$t$ (s)"

@@ -257,3 +257,15 @@ def test_check_states():
         sys.check_states(torch.tensor([[0.0, float("nan")]]))
     with pytest.raises(ValueError, match="NaN or infinite"):
         sys.check_states(torch.tensor([[0.0, float("inf")]]))
+
+
+def test_box_reach_is_the_largest_coordinate_per_half_width_from_the_boxs_centre():
+    system = ph.systems.linear_quadratic(
+        np.zeros((2, 2)), np.eye(2), np.eye(2), np.eye(2), domain=[[0.0, 2.0], [-1.0, 3.0]]
+    )
+    box = system.train_domain
+    centre, half = box.mean(axis=1), (box[:, 1] - box[:, 0]) / 2
+    x = np.stack([centre, box[:, 1], centre + [0.5 * half[0], -1.5 * half[1]], box[:, 0] - 1e-9])
+    np.testing.assert_allclose(system.box_reach(x), [0.0, 1.0, 1.5, 1.0], atol=1e-8)
+    assert system.outside_training_box(x).tolist() == [False, False, True, True]
+    assert system.box_reach(x.reshape(2, 2, 2)).shape == (2, 2)
