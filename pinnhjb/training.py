@@ -329,9 +329,8 @@ def train_finite_horizon(
     states = system.sample(n_pool, gen, dtype=dtype, device=device)
     if config.loop_share > 0:
         k = int(round(config.loop_share * n_pool))
-        states[:k] = loop_states(
-            system, k, gen, config.loop_time, dtype=dtype, device=device, policy=_loop_policy(system, config, terminal, dtype, device)
-        )
+        policy = _loop_policy(system, config, terminal, dtype, device)
+        states[:k] = loop_states(system, k, gen, config.loop_time, dtype=dtype, device=device, policy=policy)
     pool = StatePool(system, states, terminal, need_phi_grad=model.ansatz)
     bnd = None
     if not model.ansatz:
