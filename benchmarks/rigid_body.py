@@ -286,8 +286,8 @@ def _loops(config: dict) -> str:
         "lqr": "the linearisation's LQR loops",
         "terminal": "the loops of each stage's terminal cost's policy (the previous stage's value)",
     }[config.get("loop_policy", "lqr")]
-    time = config.get("loop_time", 1.5)
-    return f", {share:.0%} of the training states along {time:g} s of {whose} from Omega (loop_share)"
+    seconds = config.get("loop_time", 1.5)
+    return f", {share:.0%} of the training states along {seconds:g} s of {whose} from Omega (loop_share)"
 
 
 def _scale(scale) -> str:
