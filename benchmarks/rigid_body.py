@@ -302,7 +302,7 @@ def _budget_lines(b: dict | None) -> list[str]:
     """Where the largest value errors accrue, as a sentence (none for runs made before it was measured)."""
     if not b:
         return []
-    share = np.asarray(b["share_outside"])
+    share = np.asarray(b["share_outside"]) + 0.0  # no "-0%"
     return [
         f"Residual along the closed loops from the {b['states']} reference states with the largest value errors "
         f"(to t = {b['t_final']:g}; their errors {min(np.abs(b['value_error'])):.1e} to "
