@@ -13,7 +13,7 @@ from .checks import integer, raise_invalid, real
 from .optimizers import LBFGS, Adam, LevenbergMarquardt, Phase, get_phase, phase_from_dict
 from .pinn import ACTIVATIONS
 
-__all__ = ["TrainConfig", "PAPER_SETTINGS", "PRESETS", "WIDE_FROM", "default_network"]
+__all__ = ["TrainConfig", "PAPER_SETTINGS", "PRESETS", "WIDE_FROM", "LOOP_POLICIES", "default_network"]
 
 # The paper's Section 6 settings per example: network and data (TrainConfig fields) and its Adam phase's learning
 # rate, decay and stopping threshold. The third-order system's learning rate and decay are not stated in the

@@ -473,6 +473,20 @@ def test_rejected_attempts_are_saved_and_loaded(pendulum, monkeypatch, tmp_path)
 
 
 # ------------------------------------------------------------------------------ states along loops (loop_share)
+@pytest.fixture
+def pools(monkeypatch):
+    """The states of every StatePool built while the test runs, in order."""
+    seen = []
+    real = ph.training.StatePool.__init__
+
+    def spy(self, system, states, *args, **kwargs):
+        seen.append(states.clone())
+        real(self, system, states, *args, **kwargs)
+
+    monkeypatch.setattr(ph.training.StatePool, "__init__", spy)
+    return seen
+
+
 def test_loop_states_lie_on_lqr_loops_from_omega():
     # an LQ system, so the loops are those of the optimal policy: V* = x'Px never rises along them, and none
     # ends above V*'s largest value on Omega (at a corner), while some leave Omega (the open loop is unstable)
@@ -491,15 +505,7 @@ def test_loop_states_lie_on_lqr_loops_from_omega():
 
 
 @pytest.mark.filterwarnings("ignore:stage 1:RuntimeWarning")  # nothing is trained: only the pools are compared
-def test_loop_share_replaces_a_share_of_the_pool(pendulum, monkeypatch):
-    pools = []
-    real = ph.training.StatePool.__init__
-
-    def spy(self, system, states, *args, **kwargs):
-        pools.append(states.clone())
-        real(self, system, states, *args, **kwargs)
-
-    monkeypatch.setattr(ph.training.StatePool, "__init__", spy)
+def test_loop_share_replaces_a_share_of_the_pool(pendulum, pools):
     solver(system=pendulum, phases=()).solve(0.5)
     solver(system=pendulum, phases=(), loop_share=0.25, loop_time=2.0).solve(0.5)
     uniform, looped = pools
@@ -514,26 +520,21 @@ def test_loop_share_replaces_a_share_of_the_pool(pendulum, monkeypatch):
 
 
 @pytest.mark.filterwarnings("ignore:stage:RuntimeWarning")  # nothing is trained: only the pools are compared
-def test_loop_policy_terminal_follows_the_terminal_costs_policy(monkeypatch):
+def test_loop_policy_terminal_follows_the_terminal_costs_policy(pools):
     # from x'Px of the CARE the terminal cost's policy is the LQR policy: the same loops to rounding; one stage
-    # on, the terminal cost is that stage's (untrained) value, whose loops differ
+    # on, the terminal cost is that stage's (untrained) value, whose loops differ; from the terminal cost 0 (policy
+    # u = 0) the LQR loops again
     A, B = np.array([[0.0, 1.0], [-1.0, 0.5]]), np.array([[0.0], [1.0]])
     system = ph.systems.linear_quadratic(A, B, np.eye(2), np.eye(1), domain=[[-1, 1], [-1, 1]])
     P = ph.lq.care(A, B, np.eye(2), np.eye(1))
-    pools = []
-    real = ph.training.StatePool.__init__
-
-    def spy(self, system, states, *args, **kwargs):
-        pools.append(states.clone())
-        real(self, system, states, *args, **kwargs)
-
-    monkeypatch.setattr(ph.training.StatePool, "__init__", spy)
     for policy in ("lqr", "terminal"):
         s = solver(system=system, phases=(), loop_share=0.5, loop_policy=policy, dtype="float64")
         s.extend(s.solve(0.5, terminal_cost=P), 1.0)
-    lqr, lqr_next, terminal, terminal_next = pools
+        s.solve(0.5)
+    lqr, lqr_next, lqr_zero, terminal, terminal_next, terminal_zero = pools
     k = len(lqr) // 2
     torch.testing.assert_close(terminal, lqr, rtol=0, atol=1e-12)
     assert torch.equal(terminal_next[k:], lqr_next[k:]) and not torch.allclose(terminal_next[:k], lqr_next[:k])
+    assert torch.equal(terminal_zero, lqr_zero)
     assert ph.TrainConfig.from_dict(ph.TrainConfig(loop_policy="terminal").to_dict()).loop_policy == "terminal"
     assert "loop_policy" not in ph.TrainConfig().to_dict()
