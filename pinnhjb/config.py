@@ -77,10 +77,11 @@ class TrainConfig:
       origin term N(0, t) is evaluated once per time; None: every point its own time.
     * ``n_flow``, ``n_boundary``, ``n_origin``: the fixed data set's flow, terminal and origin points.
     * ``loop_share``: the share of the training states drawn along closed loops instead of uniformly in the
-      training box: from uniform states of Omega, the loop of the linearisation's LQR policy, taken at a uniform
-      time in [0, ``loop_time``] (:func:`pinnhjb.training.loop_states`). The value on Omega depends on the
-      residual along the optimal loops, which can leave the training box; 0: all uniform. (The finite-horizon
-      solver's pool; the steady-state baseline samples uniformly.)
+      training box: from uniform states of Omega, the loop of the policy ``loop_policy`` names (by default the
+      linearisation's LQR policy), taken at a uniform time in [0, ``loop_time``]
+      (:func:`pinnhjb.training.loop_states`). The value on Omega depends on the residual along the optimal loops,
+      which can leave the training box; 0: all uniform. (The finite-horizon solver's pool; the steady-state
+      baseline samples uniformly.)
     * ``loop_time``: the seconds of closed loop those states are drawn from.
     * ``loop_policy``: whose loops: ``"lqr"``, the linearisation's LQR policy; ``"terminal"``, the policy of the
       stage's terminal cost, which in a chain is the previous stage's learned value, so that the states follow
