@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from pinnhjb.executor import check
+from pinnhjb.optimizers import LevenbergMarquardt
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -37,3 +38,66 @@ def parse(parser: argparse.ArgumentParser, argv=None) -> argparse.Namespace:
         parser.error(str(exc))
     torch.set_num_threads(args.threads)
     return args
+
+
+def add_lm_arguments(parser: argparse.ArgumentParser, coarse: bool = True) -> None:
+    """Add ``--lm-steps``, ``--min-progress``, ``--lm-coarse`` and ``--stall-windows``: the Levenberg-Marquardt
+    phase's stopping rule and levels (:class:`pinnhjb.optimizers.LevenbergMarquardt`, whose defaults they take),
+    read back by :func:`lm_settings`.
+
+    * ``parser``: the script's parser.
+    * ``coarse``: also ``--lm-coarse`` (a script with its own ``--points-coarse`` passes False).
+    """
+    recipe = LevenbergMarquardt()
+    parser.add_argument(
+        "--lm-steps", type=int, default=None, help=f"LM iterations per stage at most (default {recipe.steps})"
+    )
+    parser.add_argument(
+        "--min-progress",
+        type=lambda a: None if a.lower() == "none" else float(a),
+        default=recipe.min_progress,
+        help="LM stall rule: a stage stops once its loss fell by less than this factor over --stall-windows windows "
+        f"of 10 iterations; none: run --lm-steps (default {recipe.min_progress:g})",
+    )
+    if coarse:
+        parser.add_argument(
+            "--lm-coarse",
+            type=lambda a: None if a.lower() == "none" else int(a),
+            default=False,
+            help="LM points per iteration until the loss first stalls (points_coarse); none: the last level's points "
+            "throughout (default: the recipe's)",
+        )
+    parser.add_argument(
+        "--stall-windows",
+        type=int,
+        default=recipe.stall_windows,
+        help=f"the windows of the stall rule (default {recipe.stall_windows})",
+    )
+
+
+def lm_settings(args) -> dict:
+    """The LM phase's fields from :func:`add_lm_arguments`'s arguments (for ``config.with_phase("lm", ...)``)."""
+    settings = {"min_progress": args.min_progress, "stall_windows": args.stall_windows}
+    if getattr(args, "lm_coarse", False) is not False:
+        settings["points_coarse"] = args.lm_coarse
+    return settings if args.lm_steps is None else {**settings, "steps": args.lm_steps}
+
+
+def lm_rule(config: dict) -> str:
+    """How the stored ``config``'s LM phase stops, as a clause for a results page ("" for the recipe's rule). The
+    points per iteration are not named: the width rule sets them per dimension."""
+    lm = next(p for p in config["phases"] if p["name"] == "lm")
+    if lm.get("min_progress") is None:
+        return f" (no stall rule: {lm['steps']} iterations per stage, on the last level's points throughout)"
+    recipe = LevenbergMarquardt()
+    if (lm["min_progress"], lm.get("stall_windows"), lm["steps"]) == (
+        recipe.min_progress,
+        recipe.stall_windows,
+        recipe.steps,
+    ) and lm.get("points_coarse") is not None:
+        return ""
+    levels = "" if lm.get("points_coarse") else "the last level's points throughout; "
+    return (
+        f" ({levels}a stage stops once its loss fell by less than {lm['min_progress']:g}x over "
+        f"{lm['stall_windows']} windows of 10 iterations, or after {lm['steps']})"
+    )

@@ -256,6 +256,17 @@ class ControlAffineSystem:
         B = self.g(zero[None])[0]
         return Linearization(A.detach().numpy().copy(), B.detach().numpy().copy(), 0.5 * H.detach().numpy())
 
+    def lqr_value(self) -> np.ndarray:
+        """P of the linearisation's LQR value ``x'Px``: :func:`pinnhjb.lq.care` of :meth:`linearize` and ``R``.
+
+        Near the origin V*(x) = x'Px + O(abs(x)^3). Returns an (n, n) numpy array; fails as
+        :func:`~pinnhjb.lq.care` does where the linearisation is not stabilisable.
+        """
+        from . import lq  # local import: lq is numpy/scipy only
+
+        lin = self.linearize()
+        return lq.care(lin.A, lin.B, lin.Q, self.R)
+
     # ------------------------------------------------------------------ core operators
     def R_tensor(self, like: Tensor) -> Tensor:
         return torch.as_tensor(self.R, dtype=like.dtype, device=like.device)

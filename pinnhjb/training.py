@@ -227,8 +227,7 @@ def loop_states(
     Returns (count, n).
     """
     if policy is None:
-        lin = system.linearize()
-        gain = torch.as_tensor(lq.lqr_gain(lin.B, system.R, lq.care(lin.A, lin.B, lin.Q, system.R)))
+        gain = torch.as_tensor(lq.lqr_gain(system.linearize().B, system.R, system.lqr_value()))
 
         def policy(x):
             return -x @ gain.T

@@ -45,7 +45,7 @@ def test_dimension_rows_are_the_same_in_workers(tmp_path):
     assert [c["T"] for c in row["chain"]] == [0.5] and row["chain"][0]["rejected_losses"] == []
     assert 0 < row["horizon_floor"] < 1  # V_0.5 is far from V*, whatever the network
     dimension = _module("dimension")
-    for bad in (["--workers", "0"], ["--retries", "-1"], ["--loop-share", "1"]):
+    for bad in (["--workers", "0"], ["--retries", "-1"], ["--loop-share", "1"], ["--min-progress", "0.5"]):
         with pytest.raises(SystemExit):  # refused before any run
             dimension.main([*tiny, "--out", str(tmp_path / "bad"), *bad])
 
@@ -89,12 +89,16 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     args = ["--reference-points", "4", "--width", "8", "--points", "200", "--step", "0.5", "--max-horizon", "0.5"]
     args += ["--closed-loop", "3", "--t-final", "2", "--dt", "0.05", "--skip-finite", "--save", "--threads", "1"]
     args += ["--no-progress", "--artifacts", str(tmp_path / "artifacts"), "--out", str(tmp_path / "out")]
+    args += ["--min-progress", "none", "--lm-steps", "5"]  # no stall rule: exactly 5 LM iterations
     assert rigid_body.main(args) == 0
     assert (tmp_path / "artifacts" / "reference" / "rigid_body_inf_4.npz").exists()
     assert (tmp_path / "artifacts" / "checkpoints" / "rigid_body_inf" / "seed0.pt").exists()
     result = json.loads((tmp_path / "out" / "rigid_body.json").read_text())
     assert result["meta"]["reference"]["replay_max_rel"] < 1e-6  # the reference's own check
-    assert [r["T"] for r in result["infinite"]["stages"]] == [0.5]
+    assert [(r["T"], r["iterations"], r["stop_reason"]) for r in result["infinite"]["stages"]] == [(0.5, 5, "lm_steps")]
     assert result["infinite"]["closed_loop"]["states"] == 3
     page = (tmp_path / "out" / "rigid_body.md").read_text()
     assert "| max abs(V - V_ref) / max V_ref <= 1e-3 |" in page and "3 x 8 network" in page
+    assert "(no stall rule: 5 iterations per stage," in page and "| 5 (lm_steps) |" in page
+    with pytest.raises(SystemExit):  # refused before any run
+        rigid_body.main([*args, "--stall-windows", "0"])

@@ -186,6 +186,11 @@ def test_rigid_body_linearization_is_tenavis_F_G_and_Q(body):
     np.testing.assert_allclose(lin.B, np.vstack([np.zeros((3, 3)), J_INV @ B_W]), atol=1e-15)
     np.testing.assert_allclose(lin.Q, np.diag([0.5] * 3 + [5.0] * 3), atol=1e-13)
 
+    # its LQR value: the ARE holds at P, and P is positive definite (the linearisation is stabilisable)
+    P = body.lqr_value()
+    residual = lin.A.T @ P + P @ lin.A + lin.Q - P @ lin.B @ np.linalg.solve(body.R, lin.B.T @ P)
+    assert np.abs(residual).max() < 1e-10 * np.abs(P).max() and np.linalg.eigvalsh(P).min() > 0
+
 
 def test_rigid_body_euler_conventions_are_consistent(body):
     # R(v) is a rotation, and along vdot = E(v) w the body-axes momentum R(v) h turns as d/dt R = S(w) R
