@@ -251,8 +251,9 @@ def main(argv=None) -> int:
     )
     add_lm_arguments(p)
     args = parse(p, argv)
+    settings = lm_settings(args)  # the default recipe's LM stopping rule
     try:
-        default_config = ph.TrainConfig.preset("default").with_phase("lm", **lm_settings(args))
+        default_config = ph.TrainConfig.preset("default").with_phase("lm", **settings)
     except ValueError as exc:
         p.error(str(exc))
     if args.retries < 0:
@@ -274,7 +275,7 @@ def main(argv=None) -> int:
     )
     width = {"default": args.width, "adam_lbfgs": None, "deepxde": None}
     loops = {"default": args.loop_share, "adam_lbfgs": 0.0, "deepxde": 0.0}
-    lm = {"default": lm_settings(args), "adam_lbfgs": None, "deepxde": None}
+    lm = {"default": settings, "adam_lbfgs": None, "deepxde": None}
     common["progress"] = not args.no_progress and args.workers is None and args.scheduler is None
     steps = {"lq_ladder": args.step, "converse": args.converse_step}
     tasks = [

@@ -188,7 +188,7 @@ def test_rigid_body_linearization_is_tenavis_F_G_and_Q(body):
 
     # its LQR value: the ARE holds at P, and P is positive definite (the linearisation is stabilisable)
     P = body.lqr_value()
-    residual = lin.A.T @ P + P @ lin.A + lin.Q - P @ lin.B @ np.linalg.solve(body.R, lin.B.T @ P)
+    residual = lq.are_residual(lin.A, lin.B, lin.Q, body.R, P)
     assert np.abs(residual).max() < 1e-10 * np.abs(P).max() and np.linalg.eigvalsh(P).min() > 0
 
 
