@@ -103,14 +103,15 @@ def run(task: dict) -> dict:
             sol = solver.extend(sol, to=sol.horizon + step)
     wall = time.perf_counter() - start
     weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
-    chain = [  # each stage: its horizon, E, final training loss and the losses of the attempts not kept
+    chain = [  # each stage: its horizon, E, final training loss, the losses of the attempts not kept, true errors
         dict(
             T=s.end,
             E_ratio=s.metrics["E"] / s.metrics["E_zero"],
             final_loss=s.history.final_loss,
             rejected_losses=[a["final_loss"] for a in s.rejected],
+            **true_errors(system, sol.truncated(k), task["points"], task["seed"]),
         )
-        for s in sol.stages
+        for k, s in enumerate(sol.stages, start=1)
     ]
     measured = dict(T=sol.horizon, stages=len(sol.stages), E_ratio=sol.metrics["E"] / zero, wall_s=wall)
     measured["rejected"] = sum(len(s.rejected) for s in sol.stages)

@@ -43,6 +43,7 @@ def test_dimension_rows_are_the_same_in_workers(tmp_path):
     page = (tmp_path / "serial" / "dimension.md").read_text()
     assert "Goal max relative V error <= 1e-4" in page and (tmp_path / "serial" / "dimension.png").stat().st_size
     assert [c["T"] for c in row["chain"]] == [0.5] and row["chain"][0]["rejected_losses"] == []
+    assert row["chain"][-1]["value_rel_error"] == row["value_rel_error"]  # the last stage's is the row's
     assert 0 < row["horizon_floor"] < 1  # V_0.5 is far from V*, whatever the network
     dimension = _module("dimension")
     for bad in (["--workers", "0"], ["--retries", "-1"], ["--loop-share", "1"], ["--min-progress", "0.5"]):
