@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import platform
 from pathlib import Path
 
 import torch
@@ -13,7 +15,7 @@ from pinnhjb.optimizers import LevenbergMarquardt
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def parse(parser: argparse.ArgumentParser, argv=None) -> argparse.Namespace:
+def parse(parser: argparse.ArgumentParser, argv=None, device: bool = False) -> argparse.Namespace:
     """Add ``--seed``, ``--threads``, ``--out``, ``--no-progress``, ``--workers`` and ``--scheduler`` to ``parser``,
     parse ``argv``, check where the runs go and set torch's thread count.
 
@@ -22,7 +24,16 @@ def parse(parser: argparse.ArgumentParser, argv=None) -> argparse.Namespace:
 
     * ``parser``: the script's parser, with its own arguments.
     * ``argv``: the arguments; None: the command line.
+    * ``device``: also ``--device`` (cpu or cuda: where the networks train); cuda where torch sees no GPU is a
+      usage error before any run.
     """
+    if device:
+        parser.add_argument(
+            "--device",
+            choices=("cpu", "cuda"),
+            default="cpu",
+            help="where the networks train (default cpu; cuda: the first GPU, still float64)",
+        )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2, help="torch threads (per run, with --workers/--scheduler)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -36,8 +47,29 @@ def parse(parser: argparse.ArgumentParser, argv=None) -> argparse.Namespace:
         check(args.workers, args.scheduler, args.threads)
     except (ImportError, TypeError, ValueError) as exc:
         parser.error(str(exc))
+    if getattr(args, "device", "cpu") == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: CUDA is not available on this machine")
     torch.set_num_threads(args.threads)
     return args
+
+
+def machine(device: str) -> str:
+    """The machine a run trained on, for a results page: the GPU's name and CUDA version with the host, or the
+    host's processor, its cores and "CPU"."""
+    host = f"{_cpu()}, {os.cpu_count()} cores, {platform.machine()}"
+    if device == "cuda":
+        return f"{torch.cuda.get_device_name()} (CUDA {torch.version.cuda}), host {host}"
+    return f"{host}, CPU"
+
+
+def _cpu() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def add_lm_arguments(parser: argparse.ArgumentParser, coarse: bool = True) -> None:

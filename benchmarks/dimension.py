@@ -37,7 +37,7 @@ import warnings
 import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/<name>.py
 import numpy as np
 import torch
-from _common import add_lm_arguments, lm_rule, lm_settings, parse
+from _common import add_lm_arguments, lm_rule, lm_settings, machine, parse
 
 import pinnhjb as ph
 from pinnhjb.executor import map_runs
@@ -93,7 +93,8 @@ def run(task: dict) -> dict:
     config = config.replace(retries=task["retries"], loop_share=task.get("loop_share", 0.0))
     if task.get("lm"):  # the default recipe's stopping rule, from the command line
         config = config.with_phase("lm", **task["lm"])
-    solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device="cpu", progress=task["progress"])
+    device = task.get("device", "cpu")
+    solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device=device, progress=task["progress"])
     start = time.perf_counter()
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -251,7 +252,7 @@ def main(argv=None) -> int:
         "(TrainConfig.loop_share)",
     )
     add_lm_arguments(p)
-    args = parse(p, argv)
+    args = parse(p, argv, device=True)
     settings = lm_settings(args)  # the default recipe's LM stopping rule
     try:
         default_config = ph.TrainConfig.preset("default").with_phase("lm", **settings)
@@ -271,8 +272,18 @@ def main(argv=None) -> int:
     against = [r for r in args.against.split(",") if r]
     if unknown := set(against) - set(RECIPES[1:]):
         p.error(f"--against: unknown recipe(s) {sorted(unknown)}; choose from {', '.join(RECIPES[1:])}")
+    if args.device == "cuda" and "deepxde" in against and compare:
+        p.error(
+            "--device cuda: DeepXDE runs on the CPU here; leave it out (--against adam_lbfgs) or compare on a GPU "
+            "with benchmarks/speed.py --device cuda"
+        )
     common = dict(
-        ratio=args.ratio, max_horizon=args.max_horizon, points=args.points, seed=args.seed, retries=args.retries
+        ratio=args.ratio,
+        max_horizon=args.max_horizon,
+        points=args.points,
+        seed=args.seed,
+        retries=args.retries,
+        device=args.device,
     )
     width = {"default": args.width, "adam_lbfgs": None, "deepxde": None}
     loops = {"default": args.loop_share, "adam_lbfgs": 0.0, "deepxde": 0.0}
@@ -308,6 +319,7 @@ def main(argv=None) -> int:
         **provenance(),
         "seed": args.seed,
         "threads": args.threads,
+        "machine": machine(args.device),
         "step": args.step,
         "converse_step": args.converse_step,
         "ratio": args.ratio,
@@ -346,7 +358,7 @@ def main(argv=None) -> int:
         f"{f'{args.loop_share:.0%} of the training states along LQR loops (loop_share), ' if args.loop_share else ''}"
         f"{f'LM{rule}, ' if rule else ''}"
         f"seed {args.seed}, {args.threads} thread(s) per run, "
-        f"{args.workers or 1} run(s) at a time, CPU; torch "
+        f"{args.workers or 1} run(s) at a time, {meta['machine']}; torch "
         f"{meta['torch']}; created {meta['created']}. Errors against the exact V* on {args.points} seeded uniform "
         "states of Omega.",
         "",

@@ -51,7 +51,6 @@ import contextlib
 import json
 import math
 import os
-import platform
 import sys
 import time
 import traceback
@@ -59,6 +58,7 @@ from pathlib import Path
 
 import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/<name>.py
 import torch
+from _common import machine
 
 import pinnhjb as ph
 from pinnhjb.metrics import infinite_horizon_residual, optimality_errors
@@ -685,23 +685,6 @@ def warm_up(device: str = "cpu") -> float:
     return time.perf_counter() - t0
 
 
-def _machine(device: str) -> str:
-    host = f"{_cpu()}, {os.cpu_count()} cores, {platform.machine()}"
-    if device == "cuda":
-        return f"{torch.cuda.get_device_name()} (CUDA {torch.version.cuda}), host {host}"
-    return f"{host}, CPU"
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {','.join(METHODS)}")
@@ -800,7 +783,7 @@ def main(argv=None):
         warm_up_seconds=warm,
         scipy=__import__("scipy").__version__,
         device=args.device,
-        machine=_machine(args.device),
+        machine=machine(args.device),
         targets=list(TARGETS),
         paper_reported_final_E=PAPER_E_QUARTIC,
     )

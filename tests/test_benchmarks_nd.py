@@ -101,5 +101,32 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     page = (tmp_path / "out" / "rigid_body.md").read_text()
     assert "| max abs(V - V_ref) / max V_ref <= 1e-3 |" in page and "3 x 8 network" in page
     assert "(no stall rule: 5 iterations per stage," in page and "| 5 (lm_steps) |" in page
+    assert ", CPU; torch" in page and result["meta"]["machine"].endswith(", CPU")  # where it trained
+    assert "| under 30 minutes on 2 CPU cores |" in page  # the time goal of the device it ran on
     with pytest.raises(SystemExit):  # refused before any run
         rigid_body.main([*args, "--stall-windows", "0"])
+
+
+def test_time_goal_follows_the_device():
+    rigid_body = _module("rigid_body")
+    assert rigid_body._time_goal(200.0, "cpu") == "| under 30 minutes on 2 CPU cores | 200 s | yes |"
+    assert rigid_body._time_goal(200.0, "cuda") == "| under 3 minutes on one GPU | 200 s | no |"
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="CUDA is available here")
+@pytest.mark.parametrize("name", ["rigid_body", "dimension"])
+def test_cuda_without_cuda_is_refused_before_any_run(name, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        _module(name).main(["--device", "cuda", "--out", str(tmp_path)])
+    assert exit_.value.code == 2 and "CUDA is not available" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_dimension_on_cuda_leaves_deepxde_to_the_cpu_benchmark(monkeypatch, tmp_path, capsys):
+    """DeepXDE is compared on the CPU only: with --device cuda it is a usage error (even where a GPU is present)."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    with pytest.raises(SystemExit) as exit_:
+        _module("dimension").main(["--device", "cuda", "--against", "deepxde", "--out", str(tmp_path)])
+    assert exit_.value.code == 2 and "DeepXDE runs on the CPU here" in capsys.readouterr().err
