@@ -130,3 +130,24 @@ def test_dimension_on_cuda_leaves_deepxde_to_the_cpu_benchmark(monkeypatch, tmp_
     with pytest.raises(SystemExit) as exit_:
         _module("dimension").main(["--device", "cuda", "--against", "deepxde", "--out", str(tmp_path)])
     assert exit_.value.code == 2 and "DeepXDE runs on the CPU here" in capsys.readouterr().err
+
+
+def test_cuda_script_is_valid_and_calls_what_exists():
+    """benchmarks/cuda.sh runs only on a lent GPU: here, that it parses and that every script and test file it
+    calls is there, with options those scripts take."""
+    script = BENCHMARKS / "cuda.sh"
+    subprocess.run(["bash", "-n", str(script)], check=True)
+    text = script.read_text()
+    root = BENCHMARKS.parent
+    for path in ("tests/test_cuda.py", "benchmarks/rigid_body.py", "benchmarks/dimension.py"):
+        assert path in text and (root / path).exists()
+    helps = {
+        name: subprocess.run(
+            [sys.executable, str(BENCHMARKS / f"{name}.py"), "--help"], capture_output=True, text=True, check=True
+        ).stdout
+        for name in ("rigid_body", "dimension")
+    }
+    for option in ("--device", "--skip-finite", "--note", "--out", "--no-progress"):
+        assert option in helps["rigid_body"]
+    for option in ("--device", "--ladder", "--converse", "--compare", "--out"):
+        assert option in helps["dimension"]
