@@ -82,7 +82,7 @@ def run(task: dict) -> dict:
     """One (system, n, recipe) run: train by extension until the E bound or the horizon cap, then the true errors.
 
     * ``task``: ``system`` (a key of :data:`BUILDERS`), ``n``, ``recipe`` (one of :data:`RECIPES`), ``step``,
-      ``ratio``, ``max_horizon``, ``points``, ``seed``, ``progress``.
+      ``ratio``, ``max_horizon``, ``points``, ``seed``, ``progress``, ``device`` (where the networks train).
     """
     if task["recipe"] == "deepxde":
         return run_deepxde(task)
@@ -93,8 +93,7 @@ def run(task: dict) -> dict:
     config = config.replace(retries=task["retries"], loop_share=task.get("loop_share", 0.0))
     if task.get("lm"):  # the default recipe's stopping rule, from the command line
         config = config.with_phase("lm", **task["lm"])
-    device = task.get("device", "cpu")
-    solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device=device, progress=task["progress"])
+    solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device=task["device"], progress=task["progress"])
     start = time.perf_counter()
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
