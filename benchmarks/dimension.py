@@ -114,8 +114,9 @@ def run(task: dict) -> dict:
         for k, s in enumerate(sol.stages, start=1)
     ]
     measured = dict(T=sol.horizon, stages=len(sol.stages), E_ratio=sol.metrics["E"] / zero, wall_s=wall)
-    measured["rejected"] = sum(len(s.rejected) for s in sol.stages)
-    return dict(_row(task, system, weights, measured, sol), chain=chain)
+    measured["rejected"] = sum(len(c["rejected_losses"]) for c in chain)
+    last = {k: chain[-1][k] for k in ("value_rel_error", "grad_mean_rel_error")}  # the whole chain's errors
+    return dict(_row(task, system, weights, measured, last), chain=chain)
 
 
 class _DeepXDEValue:
@@ -155,12 +156,13 @@ def run_deepxde(task: dict) -> dict:
     wall = time.perf_counter() - start
     weights = sum(p.numel() for p in model.net.parameters())
     measured = dict(T=stages[-1]["T"], stages=len(stages), E_ratio=ratios[-1], wall_s=wall)
-    return _row(task, system, weights, measured, _DeepXDEValue(dxd.value_fn(model.net, length)))
+    errors = true_errors(system, _DeepXDEValue(dxd.value_fn(model.net, length)), task["points"], task["seed"])
+    return _row(task, system, weights, measured, errors)
 
 
-def _row(task: dict, system, weights: int, measured: dict, sol) -> dict:
-    """One run's row: what it was, what it measured (``measured``: T, stages, E_ratio, wall_s), and the true
-    errors of ``sol`` (printed too)."""
+def _row(task: dict, system, weights: int, measured: dict, errors: dict) -> dict:
+    """One run's row: what it was, what it measured (``measured``: T, stages, E_ratio, wall_s; ``errors``: the
+    true errors of :func:`true_errors`), printed too."""
     row = {
         "system": system.name,
         "recipe": task["recipe"],
@@ -169,7 +171,7 @@ def _row(task: dict, system, weights: int, measured: dict, sol) -> dict:
         "weights": weights,
         "step": task["step"],
         **measured,
-        **true_errors(system, sol, task["points"], task["seed"]),
+        **errors,
         "horizon_floor": horizon_floor(system, measured["T"], task["points"], task["seed"]),
     }
     print(

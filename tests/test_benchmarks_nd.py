@@ -91,6 +91,7 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     args += ["--closed-loop", "3", "--t-final", "2", "--dt", "0.05", "--skip-finite", "--save", "--threads", "1"]
     args += ["--no-progress", "--artifacts", str(tmp_path / "artifacts"), "--out", str(tmp_path / "out")]
     args += ["--min-progress", "none", "--lm-steps", "5"]  # no stall rule: exactly 5 LM iterations
+    args += ["--pool-size", "300"]
     assert rigid_body.main(args) == 0
     assert (tmp_path / "artifacts" / "reference" / "rigid_body_inf_4.npz").exists()
     assert (tmp_path / "artifacts" / "checkpoints" / "rigid_body_inf" / "seed0.pt").exists()
@@ -103,8 +104,10 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     assert "(no stall rule: 5 iterations per stage," in page and "| 5 (lm_steps) |" in page
     assert ", CPU; torch" in page and result["meta"]["machine"].endswith(", CPU")  # where it trained
     assert "| under 30 minutes on 2 CPU cores |" in page  # the time goal of the device it ran on
-    with pytest.raises(SystemExit):  # refused before any run
-        rigid_body.main([*args, "--stall-windows", "0"])
+    assert result["meta"]["config"]["pool_size"] == 300 and ", 300 training states per stage (pool_size;" in page
+    for bad in (["--stall-windows", "0"], ["--pool-size", "0"]):  # refused before any run
+        with pytest.raises(SystemExit):
+            rigid_body.main([*args, *bad])
 
 
 def test_time_goal_follows_the_device():
