@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import functools
 import http.server
+import io
 import os
 import re
 import shutil
@@ -137,6 +138,31 @@ def _theory_pages() -> set[str]:
 
 def _has_explorer(rel: str) -> bool:
     return EXPLORER_MARK in (SITE / rel).read_text(encoding="utf-8")
+
+
+SHOT_TILE = 8000  # CSS px; one full-page capture much taller than this comes back with its text blank
+
+
+def _full_page_shot(page, path: Path) -> None:
+    """The whole page as one PNG at ``path``. Chromium leaves the text of a very tall full-page capture blank
+    (chapter 8 is over 37000 px), so a tall page is captured in clips of ``SHOT_TILE`` px and stitched."""
+    height = page.evaluate("() => document.documentElement.scrollHeight")
+    if height <= SHOT_TILE:
+        page.screenshot(path=str(path), full_page=True)
+        return
+    from PIL import Image
+
+    width = page.viewport_size["width"]
+    tiles = []
+    for y in range(0, height, SHOT_TILE):
+        clip = dict(x=0, y=y, width=width, height=min(SHOT_TILE, height - y))
+        tiles.append(Image.open(io.BytesIO(page.screenshot(clip=clip, full_page=True))))
+    sheet = Image.new("RGB", (tiles[0].width, sum(t.height for t in tiles)), "white")
+    top = 0
+    for tile in tiles:  # in device pixels, each tile below the last
+        sheet.paste(tile, (0, top))
+        top += tile.height
+    sheet.save(path)
 
 
 def _shot_name(rel: str, size: str) -> str:
@@ -569,7 +595,7 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
             found["n_sliders"].append(where)
             page.evaluate("() => window.scrollTo(0, 0)")
 
-    page.screenshot(path=str(SHOTS / _shot_name(rel, size)), full_page=True)
+    _full_page_shot(page, SHOTS / _shot_name(rel, size))
     found["shots"].append(_shot_name(rel, size))
 
     _check_drawer(page, where, size, found["drawer"])
