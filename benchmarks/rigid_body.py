@@ -18,6 +18,10 @@ its open-loop control (``replay_value`` = ``value``).
   ``--budget-states`` reference states with the largest errors
   (:meth:`~pinnhjb.solution.FiniteHorizonSolution.residual_along_loop`), the share of its integral accrued
   outside the training box (``--train-scale`` sets that box: Omega enlarged by this factor, one or six numbers).
+* **Carried on.** ``--resume DIR`` extends the chain of a stored run (``DIR`` its ``--out``; the chain from its
+  ``--artifacts`` or ``--resume-chain``) to ``--max-horizon`` with the same settings (checked before any work);
+  stage k trains with seed + k as in one uninterrupted run, and the page reports the stored and new stages and
+  their wall time as one chain.
 * **Finite horizon (their setting).** T = 20 with terminal cost ``abs(v)^2/2 + abs(w)^2/2``, reached by extension in
   stages of ``--finite-step``; V_20(., 0) against its own reference.
 
@@ -81,15 +85,23 @@ def errors(sol, ref: ReferenceGrid) -> dict:
     }
 
 
-def chain(system, config, seed, step, terminal, until, ref, args, every=True) -> tuple[object, list[dict], float]:
+def chain(
+    system, config, seed, step, terminal, until, ref, args, every=True, resume=None
+) -> tuple[object, list[dict], float]:
     """Solve on [0, step] and extend until ``until(sol, wall)`` holds; a row after every stage, with the errors
-    against ``ref`` after every stage (``every``) or after the last only."""
+    against ``ref`` after every stage (``every``) or after the last only. ``resume``: ``(sol, rows)`` of a stored
+    run, extended from its last stage (stage k trains with seed + k, as in one uninterrupted run), its wall time
+    carried on."""
     solver = ph.FiniteHorizonSolver(system, config, seed=seed, device=args.device, progress=not args.no_progress)
-    rows, wall = [], 0.0
+    rows, wall = ([], 0.0) if resume is None else (list(resume[1]), resume[1][-1]["wall_s"])
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
         start = time.perf_counter()
-        sol = solver.solve(step, terminal_cost=terminal)
+        sol = (
+            solver.solve(step, terminal_cost=terminal)
+            if resume is None
+            else solver.extend(resume[0], to=resume[0].horizon + step)
+        )
         while True:
             wall += time.perf_counter() - start
             done = until(sol, wall)
@@ -200,6 +212,14 @@ def main(argv=None) -> int:
     p.add_argument("--save", action="store_true", help="store the chains under ARTIFACTS/checkpoints/")
     p.add_argument("--artifacts", type=Path, default=ARTIFACTS, help="where references and checkpoints live")
     p.add_argument("--note", default="", help="a sentence on the conditions of the run, printed under the header")
+    p.add_argument(
+        "--resume",
+        type=Path,
+        default=None,
+        help="a stored run's --out folder whose chain (its --artifacts, or --resume-chain) this run extends to "
+        "--max-horizon, with the same settings; the stages and wall time of both are reported as one chain",
+    )
+    p.add_argument("--resume-chain", type=Path, default=None, help="the chain --resume extends (default: the run's)")
     args = parse(p, argv, device=True)
     if args.budget_states < 1:
         p.error(f"--budget-states must be >= 1; got {args.budget_states}")
@@ -223,6 +243,7 @@ def main(argv=None) -> int:
     except ValueError as exc:
         p.error(str(exc))
     args.width, args.points = config.width, config.phase("lm").points
+    resume = _resumed(p, args, system, config) if args.resume is not None else None
     progress = not args.no_progress  # the arguments are checked: the work starts here
     ref_inf = reference(system, math.inf, args.reference_points, 0, progress, args.artifacts)
     lqr = system.lqr_value()
@@ -236,7 +257,7 @@ def main(argv=None) -> int:
         )
 
     print(f"rigid body, infinite horizon: width {args.width}, stages of {args.step:g} s", flush=True)
-    sol, rows, wall = chain(system, config, args.seed, args.step, terminal, until, ref_inf, args)
+    sol, rows, wall = chain(system, config, args.seed, args.step, terminal, until, ref_inf, args, resume=resume)
     loop = closed_loop(system, sol, ref_inf, args.closed_loop, args.t_final, args.dt)
     print(f"  closed loop: {loop}", flush=True)
     loops = budget(sol, ref_inf, args.budget_states)
@@ -289,6 +310,43 @@ def main(argv=None) -> int:
     (args.out / "rigid_body.md").write_text(table(meta, result, args))
     print(table(meta, result, args))
     return 0
+
+
+SAME = ("seed", "step", "terminal", "train_scale", "flat_origin", "device", "threads")  # a resumed run keeps these
+
+
+def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
+    """The stored run ``--resume`` names, checked before any work: its chain and its infinite-horizon rows."""
+    stored = args.resume / "rigid_body.json"
+    if not stored.exists():
+        p.error(f"--resume: no stored run at {stored}")
+    run = json.loads(stored.read_text())
+    if not args.skip_finite or args.ablation:
+        p.error("--resume extends the infinite-horizon chain only: pass --skip-finite, not --ablation")
+    old, new = run["meta"]["args"], vars(args)
+    differ = [k for k in SAME if old.get(k) != new[k]]
+    if run["meta"]["config"] != json.loads(json.dumps(config.to_dict())):
+        differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
+    if differ:
+        p.error(f"--resume: this run's settings differ from the stored run's: {', '.join(differ)}")
+    path = args.resume_chain or Path(old["artifacts"]) / "checkpoints" / "rigid_body_inf" / f"seed{args.seed}.pt"
+    try:
+        sol = ph.load(path, system=system)
+    except (OSError, ValueError) as exc:
+        p.error(f"--resume: cannot load the chain {path}: {exc}")
+    rows = run["infinite"]["stages"]
+    if abs(sol.horizon - rows[-1]["T"]) > 1e-9 or sol.horizon >= args.max_horizon - 1e-9:
+        p.error(
+            f"--resume: the chain ends at T = {sol.horizon:g}, the stored run at T = {rows[-1]['T']:g}; "
+            f"--max-horizon ({args.max_horizon:g}) must be beyond both"
+        )
+    return sol, rows
+
+
+def _resumed_note(args) -> str:
+    if getattr(args, "resume", None) is None:
+        return ""
+    return f", the stored run `{args.resume}` carried on (its stages, chain and wall time continued here)"
 
 
 def _loops(config: dict) -> str:
@@ -347,7 +405,7 @@ def table(meta: dict, result: dict, args) -> str:
         "",
         f"Default recipe with a 3 x {args.width} network ({meta['weights']} weights), {args.points} LM points per "
         f"iteration{lm_rule(meta['config'])}{FLAT if args.flat_origin else ''}{_loops(meta['config'])}"
-        f"{_pool(meta['config'])}, "
+        f"{_pool(meta['config'])}{_resumed_note(args)}, "
         f"stages of {args.step:g} s from the terminal cost {TERMINALS[args.terminal]}, trained on Omega enlarged "
         f"{_scale(args.train_scale)}, seed {args.seed}, {args.threads} thread(s), {meta['machine']}; "
         f"torch {meta['torch']}; created {meta['created']}. Reference: "

@@ -108,6 +108,21 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     for bad in (["--stall-windows", "0"], ["--pool-size", "0"]):  # refused before any run
         with pytest.raises(SystemExit):
             rigid_body.main([*args, *bad])
+    # carried on from the stored run: its stage kept, one more trained with the same settings, one chain
+    more = [*args, "--max-horizon", "1", "--resume", str(tmp_path / "out"), "--out", str(tmp_path / "more")]
+    assert rigid_body.main(more) == 0
+    carried = json.loads((tmp_path / "more" / "rigid_body.json").read_text())["infinite"]
+    assert [r["T"] for r in carried["stages"]] == [0.5, 1.0]
+    assert carried["stages"][0] == result["infinite"]["stages"][0]
+    assert carried["wall_s"] > result["infinite"]["wall_s"]  # the stored run's time carried on
+    assert rigid_body.main([*args, "--max-horizon", "1", "--out", str(tmp_path / "straight")]) == 0
+    straight = json.loads((tmp_path / "straight" / "rigid_body.json").read_text())["infinite"]["stages"]
+    for key in ("E_ratio", "value_rel_error"):  # the same stage as one uninterrupted run trains
+        assert straight[1][key] == pytest.approx(carried["stages"][1][key], rel=1e-6)
+    assert f"the stored run `{tmp_path / 'out'}` carried on" in (tmp_path / "more" / "rigid_body.md").read_text()
+    for bad in (["--lm-steps", "6"], ["--seed", "1"], ["--max-horizon", "0.5"]):  # other settings: refused
+        with pytest.raises(SystemExit):
+            rigid_body.main([*more, *bad])
 
 
 def test_time_goal_follows_the_device():
