@@ -15,7 +15,12 @@ that makes it cheap:
 
 Several network rows may feed one residual (the ansatz evaluates N(x, t) and N(0, t) per point): with
 ``copies = R`` the M = R N rows are R blocks of N, row i of every block feeding residual i, and the sums above run
-over the blocks too. Tested against ``vmap(jacrev(...))`` to rounding.
+over the blocks too.
+
+A residual may also use one mixed second derivative along two of the tangents, d^2 N / (du dv) (the
+``flat_origin`` ansatz's d/dt of its slope x' grad_x N(0, t)): a third channel ``dda`` rides along, zero at the
+input, ``ddh = dda W'`` through a linear layer and ``sigma''(h) dh_u dh_v + sigma'(h) ddh`` through an activation;
+it enters J like a tangent, ``g_ddh dda'``. Tested against ``vmap(jacrev(...))`` to rounding.
 """
 
 from __future__ import annotations
@@ -42,7 +47,13 @@ def _activation_derivative(layer: nn.Module, h: Tensor, y: Tensor) -> Tensor:
 
 
 def residual_jacobian(
-    mlp: MLP, theta: Tensor, z: Tensor, dz: Tensor, residual_of: Callable[[Tensor, Tensor], Tensor], copies: int = 1
+    mlp: MLP,
+    theta: Tensor,
+    z: Tensor,
+    dz: Tensor,
+    residual_of: Callable[..., Tensor],
+    copies: int = 1,
+    mixed: tuple[int, int] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The residuals r (N,) and their Jacobian J (N, P) in the network's flat weights.
 
@@ -52,8 +63,10 @@ def residual_jacobian(
     * ``z``: (M, d) network inputs.
     * ``dz``: (M, K, d), K input tangents per row (e.g. d z / d (x, t)).
     * ``residual_of``: ``(out, dout) -> r`` maps the network's outputs (M,) and their directional derivatives
-      (M, K) to the residuals (N,), row by row.
+      (M, K) to the residuals (N,), row by row; with ``mixed``, ``(out, dout, ddout) -> r``.
     * ``copies``: M / N; row m of the network may feed residual m mod N only.
+    * ``mixed``: ``(u, v)``, two tangent indices: also hand ``residual_of`` the mixed second derivatives along
+      ``dz[:, u]`` and ``dz[:, v]`` (M,). None: first derivatives only.
 
     Returns r and J, both detached.
     """
@@ -61,12 +74,16 @@ def residual_jacobian(
         raise ValueError(f"need z (M, d) and dz (M, K, d); got {tuple(z.shape)} and {tuple(dz.shape)}")
     if copies < 1 or z.shape[0] % copies:
         raise ValueError(f"{z.shape[0]} network rows are not {copies} blocks of equal size")
+    if mixed is not None and not all(0 <= k < dz.shape[1] for k in mixed):
+        raise ValueError(f"mixed needs two tangent indices below {dz.shape[1]}; got {mixed}")
     sizes = [p.numel() for p in mlp.parameters()]
     if theta.numel() != sum(sizes):
         raise ValueError(f"theta has {theta.numel()} entries; the network has {sum(sizes)} weights")
     with torch.enable_grad():
         weights = iter(torch.split(theta.detach().requires_grad_(True), sizes))
-        a, da = z.detach(), dz.detach()
+        # the mixed channel rides along as one more tangent (its input is zero: the inputs are linear in x, t)
+        a = z.detach()
+        da = dz.detach() if mixed is None else torch.cat([dz.detach(), torch.zeros_like(dz[:, :1])], dim=1)
         tape = []  # (a, da, h, dh) of every linear layer
         for layer in mlp.layers:
             if isinstance(layer, nn.Linear):
@@ -77,10 +94,16 @@ def residual_jacobian(
                 a, da = h, dh
             else:
                 y = layer(a)
-                da = _activation_derivative(layer, a, y).unsqueeze(1) * da
+                d1 = _activation_derivative(layer, a, y)
+                if mixed is None:
+                    da = d1.unsqueeze(1) * da
+                else:  # sigma'' dh_u dh_v + sigma' ddh
+                    (d2,) = torch.autograd.grad(d1.sum(), a, create_graph=True)
+                    dd = d2 * da[:, mixed[0]] * da[:, mixed[1]] + d1 * da[:, -1]
+                    da = torch.cat([d1.unsqueeze(1) * da[:, :-1], dd.unsqueeze(1)], dim=1)
                 a = y
         out, dout = a.squeeze(-1), da.squeeze(-1)
-        r = residual_of(out, dout)
+        r = residual_of(out, dout) if mixed is None else residual_of(out, dout[:, :-1], dout[:, -1])
         cot = torch.autograd.grad(
             r.sum(), [t for (_, _, h, dh) in tape for t in (h, dh)], allow_unused=True, materialize_grads=True
         )

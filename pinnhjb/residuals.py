@@ -225,22 +225,37 @@ class FiniteHorizonHJB(Residual):
 
     def jacobian(self) -> Callable[..., tuple[Tensor, Tensor]] | None:
         """The batched twin of :meth:`point_residual`: (r, J) by :func:`~pinnhjb.jacobian.residual_jacobian`, with
-        N(x, t) and N(0, t) of the ansatz as two network rows per point; None for a ``flat_origin`` model (LM then
-        differentiates :meth:`point_residual`)."""
+        N(x, t) and N(0, t) of the ansatz as two network rows per point. A ``flat_origin`` model's origin rows also
+        carry the slope's direction (x, 0) as a tangent and d/dt of the slope x' grad_x N(0, t) as the mixed
+        derivative along it and t."""
         model, n = self.model, self.system.n
-        if getattr(model, "flat_origin", False):  # its mixed derivative at the origin: LM's vmap(jacrev) route
-            return None
+        flat_origin = getattr(model, "flat_origin", False)
 
         def jacobian(theta, x, t, dphi, fx, gx, qx):
             N = x.shape[0]
             z = torch.cat([model.net_inputs(x, t), model.net_inputs(torch.zeros_like(x), t)])
-            dz = torch.diag(model.input_scale(x)).expand(2 * N, n + 1, n + 1)
+            scale = model.input_scale(x)
+            dz = torch.diag(scale).expand(2 * N, n + 1, n + 1)
+            if not flat_origin:
 
-            def residual_of(out, dout):
-                gxc, gtc = model.ansatz_derivatives(t, out[:N], out[N:], dout[:N, :n], dout[:N, n], dout[N:, n])
+                def residual_of(out, dout):
+                    gxc, gtc = model.ansatz_derivatives(t, out[:N], out[N:], dout[:N, :n], dout[:N, n], dout[N:, n])
+                    return self.pde(x, gxc + dphi, gtc, fx, gx, qx)
+
+                return residual_jacobian(model.net, theta, z, dz, residual_of, copies=2)
+            # the slope's direction: (x, 0) scaled at the origin rows (unused at the x rows)
+            slope_dir = torch.cat([x * scale[:n], torch.zeros_like(x[:, :1])], dim=-1).repeat(2, 1)
+            dz = torch.cat([dz, slope_dir.unsqueeze(1)], dim=1)
+
+            def flat_residual_of(out, dout, ddout):
+                # correction s (N(x, t) - N(0, t) - slope), slope = x' grad_x N(0, t) (see FiniteHorizonValue)
+                s = (model.horizon - t) / model.horizon
+                slope = dout[N:, n + 1]
+                gxc = s.unsqueeze(-1) * (dout[:N, :n] - dout[N:, :n])
+                gtc = s * (dout[:N, n] - dout[N:, n] - ddout[N:]) - (out[:N] - out[N:] - slope) / model.horizon
                 return self.pde(x, gxc + dphi, gtc, fx, gx, qx)
 
-            return residual_jacobian(model.net, theta, z, dz, residual_of, copies=2)
+            return residual_jacobian(model.net, theta, z, dz, flat_residual_of, copies=2, mixed=(n + 1, n))
 
         return jacobian
 

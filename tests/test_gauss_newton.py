@@ -216,3 +216,14 @@ def test_max_time_stops_the_levenberg_marquardt_phase():
     sol = ph.FiniteHorizonSolver(ph.systems.pendulum(), cfg, seed=0, device="cpu", progress=False).solve(1.0)
     assert sol.stages[0].history.stop_reason == "max_time"
     assert sol.stages[0].history.step[-1] < 10_000
+
+
+@pytest.mark.parametrize("blocks", [None, 1, 3, 4])
+def test_gram_in_blocks_is_the_plain_product(blocks):
+    """gram(A) is A'A whether formed in one product or from its upper blocks (P not a multiple of the blocks)."""
+    from pinnhjb.gauss_newton import gram
+
+    A = torch.randn(50, 37, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    G = gram(A, blocks)
+    torch.testing.assert_close(G, A.T @ A, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close(G, G.T, rtol=0, atol=1e-12)

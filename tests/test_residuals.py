@@ -149,9 +149,11 @@ def test_create_graph_allows_training_through_the_residual():
 
 
 # ------------------------------------------------------------------------------ structured Jacobians vs jacrev
+@pytest.mark.parametrize("flat_origin", [False, True])
 @pytest.mark.parametrize("activation", ["tanh", "sigmoid", "silu"])
 @pytest.mark.parametrize("system_name, depth", [("quartic", 3), ("third_order", 1)])
-def test_finite_horizon_jacobian_matches_jacrev(system_name, depth, activation):
+def test_finite_horizon_jacobian_matches_jacrev(system_name, depth, activation, flat_origin):
+    """The structured Jacobian (with flat_origin: its mixed second derivative at the origin) is jacrev's."""
     gen = torch.Generator().manual_seed(0)
     system = ph.get_system(system_name)
     model = FiniteHorizonValue(
@@ -162,6 +164,7 @@ def test_finite_horizon_jacobian_matches_jacrev(system_name, depth, activation):
         depth=depth,
         activation=activation,
         terminal_cost=QuadraticTerminalCost(torch.eye(system.n).numpy() * 0.7),
+        flat_origin=flat_origin,
     ).double()
     res = FiniteHorizonHJB(system, model)
     flat = FlatParameters(model.net)

@@ -327,15 +327,15 @@ def test_default_width_rule_keeps_small_systems_and_widens_from_six():
 
 
 def test_flat_origin_trains_by_lm_and_round_trips(tmp_path):
-    """A short default (LM) chain with flat_origin on the quartic system: the residual form hands LM no structured
-    Jacobian (it differentiates the per-point residual instead), the learned policy vanishes at the origin, and a
+    """A short default (LM) chain with flat_origin on the quartic system: the residual form hands LM its
+    structured Jacobian (with the mixed derivative at the origin), the learned policy vanishes at the origin, and a
     saved chain loads back with the flag and the same values."""
     from pinnhjb.residuals import FiniteHorizonHJB
 
     config = ph.TrainConfig.preset("default", flat_origin=True).with_phase("lm", steps=20, min_progress=None)
     solver = ph.FiniteHorizonSolver(ph.systems.quartic(), config, seed=0, device="cpu", progress=False)
     sol = solver.extend(solver.solve(0.5), to=1.0)
-    assert FiniteHorizonHJB(sol.system, sol.stages[-1].model).jacobian() is None
+    assert FiniteHorizonHJB(sol.system, sol.stages[-1].model).jacobian() is not None
     zero = np.zeros((1, 2))
     assert np.abs(sol.gradient(zero)).max() < 1e-12 and np.abs(sol.policy(zero)).max() < 1e-12
     assert sol.metrics["E"] < sol.metrics["E_zero"]  # it learned
