@@ -227,3 +227,19 @@ def test_gram_in_blocks_is_the_plain_product(blocks):
     G = gram(A, blocks)
     torch.testing.assert_close(G, A.T @ A, rtol=1e-13, atol=1e-12)
     torch.testing.assert_close(G, G.T, rtol=0, atol=1e-12)
+
+
+def test_a_non_finite_jacobian_is_refused_with_the_stage():
+    """A finite residual whose Jacobian is not (sqrt at 0) stops LM with DivergenceError, found on J'J's diagonal."""
+    from pinnhjb.gauss_newton import DivergenceError
+
+    a = torch.linspace(0.5, 1.5, 8, dtype=torch.float64)
+    with pytest.raises(DivergenceError, match="stage toy.*Jacobian became non-finite"):
+        levenberg_marquardt(
+            torch.zeros(3, dtype=torch.float64),
+            lambda theta, ai: torch.sqrt(theta).sum() * ai,
+            lambda size: (a,),
+            steps=2,
+            points=8,
+            desc="toy",
+        )
