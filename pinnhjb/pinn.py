@@ -324,12 +324,26 @@ class FiniteHorizonValue(_Scaled):
         return self.ansatz_derivatives(t, n_x, n_0[origin_index], gx, nt_x, nt_0[origin_index])
 
     def ansatz_derivatives(
-        self, t: Tensor, n_x: Tensor, n_0: Tensor, gx: Tensor, nt_x: Tensor, nt_0: Tensor
+        self,
+        t: Tensor,
+        n_x: Tensor,
+        n_0: Tensor,
+        gx: Tensor,
+        nt_x: Tensor,
+        nt_0: Tensor,
+        flat: tuple[Tensor, Tensor, Tensor] | None = None,
     ) -> tuple[Tensor, Tensor]:
         """grad_x and d/dt of the correction (T - t)/T (N(x, t) - N(0, t)) from N(x, t), N(0, t), grad_x N(x, t),
-        d/dt N(x, t) and d/dt N(0, t) per point."""
+        d/dt N(x, t) and d/dt N(0, t) per point.
+
+        * ``flat``: for ``flat_origin``, ``(grad_x N(0, t), slope, d/dt slope)`` per point, the slope
+          x' grad_x N(0, t); the correction then also subtracts the slope. None: without it.
+        """
         s = (self.horizon - t) / self.horizon
-        return s.unsqueeze(-1) * gx, s * (nt_x - nt_0) - (n_x - n_0) / self.horizon
+        if flat is None:
+            return s.unsqueeze(-1) * gx, s * (nt_x - nt_0) - (n_x - n_0) / self.horizon
+        gx_0, slope, slope_t = flat
+        return s.unsqueeze(-1) * (gx - gx_0), s * (nt_x - nt_0 - slope_t) - (n_x - n_0 - slope) / self.horizon
 
 
 class SteadyStateValue(_Scaled):

@@ -248,11 +248,10 @@ class FiniteHorizonHJB(Residual):
             dz = torch.cat([dz, slope_dir.unsqueeze(1)], dim=1)
 
             def flat_residual_of(out, dout, ddout):
-                # correction s (N(x, t) - N(0, t) - slope), slope = x' grad_x N(0, t) (see FiniteHorizonValue)
-                s = (model.horizon - t) / model.horizon
-                slope = dout[N:, n + 1]
-                gxc = s.unsqueeze(-1) * (dout[:N, :n] - dout[N:, :n])
-                gtc = s * (dout[:N, n] - dout[N:, n] - ddout[N:]) - (out[:N] - out[N:] - slope) / model.horizon
+                flat = (dout[N:, :n], dout[N:, n + 1], ddout[N:])  # grad_x N(0, t), the slope, its d/dt
+                gxc, gtc = model.ansatz_derivatives(
+                    t, out[:N], out[N:], dout[:N, :n], dout[:N, n], dout[N:, n], flat=flat
+                )
                 return self.pde(x, gxc + dphi, gtc, fx, gx, qx)
 
             return residual_jacobian(model.net, theta, z, dz, flat_residual_of, copies=2, mixed=(n + 1, n))
