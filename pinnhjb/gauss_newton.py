@@ -49,7 +49,7 @@ def gram(A: Tensor, blocks: int | None = None) -> Tensor:
 
     * ``A``: (N, P).
     * ``blocks``: split the columns into this many blocks and form only the products of the upper blocks
-      (b (b + 1) / 2 of b^2), mirroring the rest; None: 4 blocks on a CPU when P >= :data:`GRAM_BLOCKS_FROM`,
+      (b (b + 1) / 2 of b^2), mirroring the rest; None: 4 blocks on a CPU when P >= ``GRAM_BLOCKS_FROM``,
       else one product.
     """
     P = A.shape[1]
