@@ -325,7 +325,7 @@ def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
         p.error("--resume extends the infinite-horizon chain only: pass --skip-finite, not --ablation")
     old, new = run["meta"]["args"], vars(args)
     differ = [k for k in SAME if old.get(k) != new[k]]
-    if run["meta"]["config"] != json.loads(json.dumps(config.to_dict())):
+    if ph.TrainConfig.from_dict(run["meta"]["config"]) != config:
         differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
     if differ:
         p.error(f"--resume: this run's settings differ from the stored run's: {', '.join(differ)}")
