@@ -75,3 +75,28 @@ def test_extension_and_checkpoint_from_cuda_to_cpu(tmp_path, x_test):
     assert back.device.type == "cpu"
     assert np.allclose(back.value(x_test), sol.value(x_test), rtol=1e-12, atol=1e-12)
     assert back.evaluate(11)["E"] == pytest.approx(sol.evaluate(11)["E"], rel=1e-9)
+
+
+def test_rigid_body_recipe_on_cuda_matches_the_cpu():
+    """The 6-D path of issue #18 on the GPU: the structured Jacobian with grad V(0, t) = 0 built in (its mixed
+    channel), training states along the LQR loops, the LQR terminal cost and E by Monte Carlo, as on the CPU."""
+    system = ph.systems.rigid_body()
+    config = ph.TrainConfig.preset("default", dimension=system.n).replace(
+        width=8,
+        depth=2,
+        flat_origin=True,
+        loop_share=0.3,
+        pool_size=2000,
+        eval_points_per_dim=3,
+        phases=(ph.LevenbergMarquardt(steps=6, points=300, points_coarse=None, min_progress=None),),
+    )
+    terminal = system.lqr_value()
+    cpu, gpu = (
+        ph.FiniteHorizonSolver(system, config, seed=2, device=d, progress=False).solve(1.0, terminal_cost=terminal)
+        for d in ("cpu", "cuda")
+    )
+    x = np.random.default_rng(1).uniform(-0.5, 0.5, (32, 6))
+    assert gpu.device.type == "cuda"
+    assert np.allclose(gpu.value(x), cpu.value(x), rtol=1e-6, atol=1e-8)
+    assert np.allclose(gpu.gradient(x), cpu.gradient(x), rtol=1e-5, atol=1e-7)
+    assert gpu.metrics["E"] == pytest.approx(cpu.metrics["E"], rel=1e-4)
