@@ -322,24 +322,39 @@ def loss_curve(history, title: str = ""):
     return fig
 
 
-def time_to_accuracy(traces: dict, targets: dict | None = None, title: str = ""):
-    """The horizon check E :eq:`eq-e` against training wall seconds, one line per run, checks marked.
+def time_to_accuracy(
+    traces: dict,
+    targets: dict | None = None,
+    title: str = "",
+    ylabel: str = "E (infinite-horizon residual)",
+    deadlines: dict | None = None,
+):
+    """The horizon check E :eq:`eq-e` (or another error) against training wall seconds, one line per run, checks
+    marked.
 
     * ``traces``: label -> (seconds, E), e.g. from ``benchmarks/results/speed.json``.
     * ``targets``: label -> an E drawn as a dashed horizontal line.
     * ``title``: the figure's title.
+    * ``ylabel``: what the traces' second entries are.
+    * ``deadlines``: label -> seconds, drawn as a vertical line in the colour of the trace of that label.
     """
     fig, ax = plt.subplots(figsize=(WIDTH, 4.6))
+    unknown = set(deadlines or {}) - set(traces)
+    if unknown:
+        raise ValueError(f"deadlines for runs not among the traces: {sorted(unknown)}")
+    colours = {}
     for label, (seconds, E) in traces.items():
         seconds, E = np.asarray(seconds, dtype=float), np.asarray(E, dtype=float)
         if seconds.shape != E.shape or seconds.ndim != 1:
             raise ValueError(f"{label}: seconds and E must be 1-D of one length; got {seconds.shape}, {E.shape}")
-        ax.semilogy(seconds, E, marker="o", markersize=3, label=label)
+        colours[label] = ax.semilogy(seconds, E, marker="o", markersize=3, label=label)[0].get_color()
     for k, (label, value) in enumerate((targets or {}).items()):
         ax.axhline(value, color="0.3", linestyle=("--", ":", "-.")[k % 3], linewidth=1, label=label)
+    for label, seconds in (deadlines or {}).items():
+        ax.axvline(seconds, color=colours[label], linestyle=":", linewidth=1.2, label=f"{label}: time goal")
     ax.set_xscale("log")  # seconds to hundreds of seconds on one axis
     ax.set_xlabel("training wall time (s)")
-    ax.set_ylabel("E (infinite-horizon residual)")
+    ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)  # below: covers no curve
     if title:

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -165,7 +167,22 @@ def test_cuda_script_is_valid_and_calls_what_exists():
         ).stdout
         for name in ("rigid_body", "dimension")
     }
-    for option in ("--device", "--skip-finite", "--note", "--out", "--no-progress"):
+    for option in ("--device", "--skip-finite", "--note", "--out", "--no-progress", "--width", "--points"):
         assert option in helps["rigid_body"]
-    for option in ("--device", "--ladder", "--converse", "--compare", "--out"):
+    for option in ("--min-progress", "--lm-steps", "--train-scale", "--max-time", "--closed-loop", "--t-final"):
+        assert option in helps["rigid_body"]
+    for option in ("--device", "--ladder", "--converse", "--compare", "--out", "--max-horizon"):
         assert option in helps["dimension"]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks what cuda.sh does where CUDA is absent")
+def test_cuda_script_checks_its_parts_and_skips_long_runs_after_a_failed_tiny_one(tmp_path):
+    script = str(BENCHMARKS / "cuda.sh")
+    env = {**os.environ, "OUT": str(tmp_path), "PYTHON": sys.executable}
+    bad = subprocess.run(["bash", script, "rigid", "gpu"], capture_output=True, text=True, env=env)
+    assert bad.returncode == 2 and "unknown part 'gpu'" in bad.stderr and not (tmp_path / "log.txt").exists()
+    # no CUDA here: the tiny rigid-body run is a usage error, and neither long rigid-body run starts
+    subprocess.run(["bash", script, "rigid", "best"], capture_output=True, text=True, env=env, cwd=BENCHMARKS.parent)
+    log = (tmp_path / "log.txt").read_text()
+    assert log.count("benchmarks/rigid_body.py") == 1 and "--lm-steps 5" in log
+    assert "CUDA is not available" in log and not (tmp_path / "rigid_body").exists()

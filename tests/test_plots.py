@@ -57,6 +57,22 @@ def test_time_to_accuracy_draws_one_line_per_run_and_the_targets():
         plots.time_to_accuracy({"bad": ([1.0, 2.0], [1.0])})
 
 
+def test_time_to_accuracy_draws_each_runs_time_goal_in_its_colour():
+    fig = plots.time_to_accuracy(
+        {"gpu": ([10.0, 50.0], [2e-2, 1e-3]), "cpu": ([500.0, 2000.0], [2e-2, 1e-3])},
+        ylabel="value error",
+        deadlines={"gpu": 180.0, "cpu": 1800.0},
+    )
+    ax = fig.axes[0]
+    goal = {line.get_label(): line for line in ax.lines[2:]}
+    assert set(goal) == {"gpu: time goal", "cpu: time goal"} and ax.get_ylabel() == "value error"
+    assert goal["gpu: time goal"].get_xdata()[0] == 180.0
+    assert goal["cpu: time goal"].get_color() == ax.lines[1].get_color() != ax.lines[0].get_color()
+    plt.close(fig)
+    with pytest.raises(ValueError, match="not among the traces"):
+        plots.time_to_accuracy({"gpu": ([1.0], [1.0])}, deadlines={"tpu": 5.0})
+
+
 def test_grouped_bars_draw_each_value_and_mark_the_missing():
     fig = plots.grouped_bars({"ours": {"CPU": 10.0, "GPU": 5.0}, "theirs": {"CPU": 25.0, "GPU": None}}, "s")
     ax = fig.axes[0]
