@@ -53,6 +53,19 @@ def test_dimension_rows_are_the_same_in_workers(tmp_path):
             dimension.main([*tiny, "--out", str(tmp_path / "bad"), *bad])
 
 
+def test_dimension_lm_points_set_every_n_and_are_checked_before_any_run(tmp_path, capsys):
+    dimension = _module("dimension")
+    tiny = ["--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "0.5", "--points", "256"]
+    tiny += ["--threads", "1", "--no-progress", "--lm-steps", "3"]
+    with pytest.raises(SystemExit):  # n = 8's rule has 2000 coarse points, more than 1000
+        dimension.main(["--ladder", "2,8", *tiny, "--lm-points", "1000", "--out", str(tmp_path / "bad")])
+    assert "n = 8:" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    dimension.main(["--ladder", "2", *tiny, "--lm-points", "900", "--lm-coarse", "none", "--out", str(tmp_path)])
+    lm = json.loads((tmp_path / "dimension.json").read_text())["meta"]["configs"]["default"]["phases"][0]
+    assert (lm["points"], lm["points_coarse"], lm["steps"]) == (900, None, 3)
+    assert "900 LM points per iteration at every n" in (tmp_path / "dimension.md").read_text()
+
+
 def test_horizon_floor_is_the_riccati_ode_s_error_and_falls_with_the_horizon():
     import pinnhjb as ph
 
