@@ -41,6 +41,7 @@ step() {  # step SECONDS COMMAND...: run it under a time limit, its output and e
     return "$rc"
 }
 smoke=$(mktemp -d)
+trap 'rm -rf "$smoke"' EXIT
 note="One GPU; benchmarks/cuda.sh (the checks after training on its CPU)."
 rigid_ok= ladder_ok=  # the tiny runs' exit status, once run
 tiny_rigid() {
