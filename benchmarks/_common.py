@@ -7,6 +7,7 @@ import os
 import platform
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from pinnhjb.executor import check
@@ -133,3 +134,28 @@ def lm_rule(config: dict) -> str:
         f" ({levels}a stage stops once its loss fell by less than {lm['min_progress']:g}x over "
         f"{lm['stall_windows']} windows of 10 iterations, or after {lm['steps']})"
     )
+
+
+def loop_budget(sol, x: np.ndarray, v_ref: np.ndarray, count: int, t_final: float = 10.0) -> dict:
+    """Where the largest value errors come from: the residual integrated along the learned closed loops
+    (:meth:`~pinnhjb.FiniteHorizonSolution.residual_along_loop`) from the ``count`` states of ``x`` with the
+    largest ``abs(V - v_ref)``, how much of it accrued outside the training box, how many of those loops leave the
+    box and how far each reaches (:meth:`~pinnhjb.systems.ControlAffineSystem.box_reach`, above 1 outside).
+
+    * ``sol``: the trained chain; ``x``: (N, n) states; ``v_ref``: (N,) their reference (or exact) values.
+    * ``count``: how many of the largest errors; ``t_final``: the loops' length.
+
+    Errors and integrals are per max ``v_ref``.
+    """
+    err = sol.value(x) - v_ref
+    worst = np.argsort(np.abs(err))[::-1][:count]
+    loops = sol.residual_along_loop(x[worst], t_final=t_final)
+    return {
+        "states": int(worst.size),
+        "t_final": t_final,
+        "value_error": (err[worst] / v_ref.max()).tolist(),
+        "integral": (loops.integral / v_ref.max()).tolist(),
+        "share_outside": (loops.integral_outside / loops.integral).tolist(),
+        "leave_box": int(loops.outside.any(axis=0).sum()),
+        "reach_max": loops.reach.max(axis=0).tolist(),
+    }

@@ -7,6 +7,10 @@ the value are measured on ``--points`` seeded uniform states of Omega:
 
 * max abs(V - V*) / max V* and the mean relative error of grad V;
 * the training wall time, and a least-squares exponent of wall time against n (log-log) per family;
+* for the default recipe, where its largest errors come from (``--budget-states``: the residual along their
+  learned closed loops, inside the training box or not) and, for each stage after the first, how much of its
+  error it carried from its terminal cost (``carried``); ``--save`` stores its chains. ``--train-scale``,
+  ``--flat-origin`` and ``--cold-start`` change its training box, its ansatz and its warm start;
 * at the dimensions ``--compare``, our first-order recipe ``adam_lbfgs`` and DeepXDE beside the default, on both
   systems. DeepXDE (``deepxde``) is the chain a user would build with its API (:mod:`_deepxde`: 3 x 100 in float32,
   ``adam_lbfgs``'s Adam and L-BFGS budgets a stage, soft conditions), extended with the same stages and the same
@@ -33,11 +37,12 @@ import json
 import math
 import time
 import warnings
+from pathlib import Path
 
 import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/<name>.py
 import numpy as np
 import torch
-from _common import add_lm_arguments, lm_rule, lm_settings, machine, parse
+from _common import add_lm_arguments, lm_rule, lm_settings, loop_budget, machine, parse
 
 import pinnhjb as ph
 from pinnhjb.executor import map_runs
@@ -64,6 +69,19 @@ def true_errors(system, sol, points: int, seed: int) -> dict:
     }
 
 
+def carried(system, sol, k: int, points: int, seed: int) -> float | None:
+    """How much of stage k's error is its terminal cost's, state by state: the correlation of V - V* after stage k
+    with V - V* after stage k - 1 (its terminal cost) over the states of :func:`true_errors`. Near 1: the stage hands
+    its terminal cost's error on where it sits, where an exact stage would move it to where the optimal loops have
+    gone by then. None for the first stage."""
+    if k < 2:
+        return None
+    x = _states(system, points, seed)
+    v_star = system.value_star(x).detach().numpy()
+    now, before = (sol.truncated(j).value(x.numpy()) - v_star for j in (k, k - 1))
+    return float(np.corrcoef(now, before)[0, 1])
+
+
 def horizon_floor(system, horizon: float, points: int, seed: int) -> float | None:
     """For a linear system (the LQ ladder), the error that the horizon alone leaves over the states of
     :func:`true_errors` (:func:`pinnhjb.lq.horizon_gap`: the exact V_T(., 0) from the zero terminal cost against
@@ -74,7 +92,10 @@ def horizon_floor(system, horizon: float, points: int, seed: int) -> float | Non
     return ph.lq.horizon_gap(A, B, Q, system.R, horizon, _states(system, points, seed).numpy())
 
 
-BUILDERS = {"lq_ladder": lambda n: ph.systems.lq_ladder(n // 2), "converse": ph.systems.converse}
+BUILDERS = {  # (n, train_scale) -> the system; train_scale None: the builder's box (Omega enlarged 1.25x)
+    "lq_ladder": lambda n, scale=None: ph.systems.lq_ladder(n // 2, scale),
+    "converse": lambda n, scale=None: ph.systems.converse(n, scale),
+}
 RECIPES = ("default", "adam_lbfgs", "deepxde")  # pinnhjb's presets, and DeepXDE
 
 
@@ -82,15 +103,23 @@ def run(task: dict) -> dict:
     """One (system, n, recipe) run: train by extension until the E bound or the horizon cap, then the true errors.
 
     * ``task``: ``system`` (a key of :data:`BUILDERS`), ``n``, ``recipe`` (one of :data:`RECIPES`), ``step``,
-      ``ratio``, ``max_horizon``, ``points``, ``seed``, ``progress``, ``device`` (where the networks train).
+      ``ratio``, ``max_horizon``, ``points``, ``seed``, ``progress``, ``device`` (where the networks train),
+      ``train_scale`` (the training box; None: the builder's), ``flat_origin`` (grad V(0, t) = 0 built into the
+      ansatz, :class:`~pinnhjb.TrainConfig`), ``cold`` (each stage from fresh weights: ``warm_start=False``),
+      ``budget`` (how many of the largest errors get :func:`_common.loop_budget`; 0: none), ``save`` (a folder for
+      the chain, or None).
     """
     if task["recipe"] == "deepxde":
         return run_deepxde(task)
-    system, step = BUILDERS[task["system"]](task["n"]), task["step"]
+    system, step = BUILDERS[task["system"]](task["n"], task.get("train_scale")), task["step"]
     config = ph.TrainConfig.preset(task["recipe"], dimension=system.n)
     if task["width"] is not None:
         config = config.replace(width=task["width"])
     config = config.replace(retries=task["retries"], loop_share=task.get("loop_share", 0.0))
+    if task.get("flat_origin"):
+        config = config.replace(flat_origin=True)
+    if task.get("cold"):
+        config = config.replace(warm_start=False)
     if task.get("lm"):  # the default recipe's stopping rule, from the command line
         config = config.with_phase("lm", **task["lm"])
     solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device=task["device"], progress=task["progress"])
@@ -110,13 +139,21 @@ def run(task: dict) -> dict:
             final_loss=s.history.final_loss,
             rejected_losses=[a["final_loss"] for a in s.rejected],
             **true_errors(system, sol.truncated(k), task["points"], task["seed"]),
+            carried=carried(system, sol, k, task["points"], task["seed"]),
         )
         for k, s in enumerate(sol.stages, start=1)
     ]
     measured = dict(T=sol.horizon, stages=len(sol.stages), E_ratio=sol.metrics["E"] / zero, wall_s=wall)
     measured["rejected"] = sum(len(c["rejected_losses"]) for c in chain)
     last = {k: chain[-1][k] for k in ("value_rel_error", "grad_mean_rel_error")}  # the whole chain's errors
-    return dict(_row(task, system, weights, measured, last), chain=chain)
+    row = dict(_row(task, system, weights, measured, last), chain=chain)
+    if task.get("budget"):  # where the largest errors come from: the residual along their loops, inside the box?
+        x = _states(system, task["points"], task["seed"])
+        v_star = system.value_star(x).detach().numpy()
+        row["budget"] = loop_budget(sol, x.numpy(), v_star, task["budget"])
+    if task.get("save"):
+        ph.save(sol, Path(task["save"]) / f"{system.name}-n{system.n}-{task['recipe']}.pt")
+    return row
 
 
 class _DeepXDEValue:
@@ -137,7 +174,7 @@ def run_deepxde(task: dict) -> dict:
     """:func:`run` for DeepXDE: the chain of :func:`_deepxde.chain` with ``adam_lbfgs``'s network and budgets,
     stopped by the same rule on E (measured by the same function as ours); a row with ``status`` "not installed"
     where DeepXDE is not importable."""
-    system, step = BUILDERS[task["system"]](task["n"]), task["step"]
+    system, step = BUILDERS[task["system"]](task["n"], task.get("train_scale")), task["step"]
     dde, missing = dxd.import_deepxde()
     if dde is None:
         return {"system": system.name, "recipe": "deepxde", "n": system.n, "m": system.m, "status": missing}
@@ -180,6 +217,28 @@ def _row(task: dict, system, weights: int, measured: dict, errors: dict) -> dict
         flush=True,
     )
     return row
+
+
+def _budget_lines(rows: list[dict]) -> list[str]:
+    """The results page's lines on where each default run's largest errors come from (``row["budget"]``) and how
+    much of the last stage's error it carried from its terminal cost (``carried``)."""
+    lines = []
+    for r in rows:
+        if r.get("chain") and r["chain"][-1].get("carried") is not None:
+            lines.append(
+                f"{r['system']} n = {r['n']}: the last stage's error, state by state, correlates "
+                f"{r['chain'][-1]['carried']:.3f} with its terminal cost's (the stage before)."
+            )
+        if b := r.get("budget"):
+            err, share = np.abs(b["value_error"]), np.asarray(b["share_outside"])
+            lines.append(
+                f"{r['system']} n = {r['n']}: of the {b['states']} largest errors ({err.min():.1e} to {err.max():.1e} "
+                f"of max V*), {b['leave_box']} have learned closed loops that leave the training box (reach at most "
+                f"{max(b['reach_max']):.2f} of its half-width); the residual outside accounts for up to "
+                f"{share.max():.0%} of a loop's integral (the integral over {b['t_final']:g} s: "
+                f"{min(b['integral']):.1e} to {max(b['integral']):.1e} of max V*)."
+            )
+    return [""] + lines if lines else []
 
 
 def _sci(value) -> str:
@@ -252,6 +311,29 @@ def main(argv=None) -> int:
         help="the default recipe's share of training states along the linearisation's LQR loops from Omega "
         "(TrainConfig.loop_share)",
     )
+    p.add_argument(
+        "--train-scale",
+        type=float,
+        default=None,
+        help="the training box: Omega enlarged about the origin by this factor (default: the systems' 1.25)",
+    )
+    p.add_argument(
+        "--budget-states",
+        type=int,
+        default=10,
+        help="the default recipe's largest errors whose closed loops get the residual budget (0: none)",
+    )
+    p.add_argument(
+        "--flat-origin",
+        action="store_true",
+        help="the default recipe with grad V(0, t) = 0 built into the ansatz too (TrainConfig.flat_origin)",
+    )
+    p.add_argument(
+        "--cold-start",
+        action="store_true",
+        help="the default recipe's stages each from fresh weights, not the stage before's (TrainConfig.warm_start)",
+    )
+    p.add_argument("--save", action="store_true", help="store the default recipe's chains under OUT/chains/")
     add_lm_arguments(p)
     p.add_argument(
         "--lm-points",
@@ -267,6 +349,10 @@ def main(argv=None) -> int:
         default_config = ph.TrainConfig.preset("default").with_phase("lm", **settings)
     except ValueError as exc:
         p.error(str(exc))
+    if args.flat_origin:
+        default_config = default_config.replace(flat_origin=True)
+    if args.cold_start:
+        default_config = default_config.replace(warm_start=False)
     if args.retries < 0:
         p.error(f"--retries must be an integer >= 0; got {args.retries}")
     if not 0 <= args.loop_share < 1:
@@ -277,6 +363,14 @@ def main(argv=None) -> int:
     }
     if any(n % 2 for ns in sizes.values() for n in ns):
         p.error("every n must be even (the ladder has n = 2k; the converse system m = n/2 inputs)")
+    if args.budget_states < 0:
+        p.error(f"--budget-states must be >= 0; got {args.budget_states}")
+    try:  # every system built once, with its training box, before any run
+        for name, ns in sizes.items():
+            for n in ns:
+                BUILDERS[name](n, args.train_scale)
+    except ValueError as exc:
+        p.error(f"--train-scale: {exc}")
     for n in sorted({n for ns in sizes.values() for n in ns}):  # the LM settings at every n's width rule
         try:
             ph.TrainConfig.preset("default", dimension=n).with_phase("lm", **settings)
@@ -298,6 +392,8 @@ def main(argv=None) -> int:
         seed=args.seed,
         retries=args.retries,
         device=args.device,
+        train_scale=args.train_scale,
+        save=str(args.out / "chains") if args.save else None,
     )
     width = {"default": args.width, "adam_lbfgs": None, "deepxde": None}
     loops = {"default": args.loop_share, "adam_lbfgs": 0.0, "deepxde": 0.0}
@@ -314,6 +410,9 @@ def main(argv=None) -> int:
             width=width[recipe],
             loop_share=loops[recipe],
             lm=lm[recipe],
+            budget=args.budget_states if recipe == "default" else 0,
+            flat_origin=args.flat_origin and recipe == "default",
+            cold=args.cold_start and recipe == "default",
         )
         for name, ns in sizes.items()
         for n in ns
@@ -344,6 +443,10 @@ def main(argv=None) -> int:
         "width": args.width,
         "retries": args.retries,
         "loop_share": args.loop_share,
+        "train_scale": args.train_scale,
+        "flat_origin": args.flat_origin,
+        "cold_start": args.cold_start,
+        "budget_states": args.budget_states,
         "workers": args.workers,
         "config": default_config.to_dict(),
         "configs": {"default": default_config.to_dict(), "adam_lbfgs": ph.TrainConfig.preset("adam_lbfgs").to_dict()},
@@ -371,6 +474,9 @@ def main(argv=None) -> int:
         f"{args.ratio:g} or T = {args.max_horizon:g}, "
         f"{f'a failed stage tried up to {args.retries} more times (retries), ' if args.retries else ''}"
         f"{f'{args.loop_share:.0%} of the training states along LQR loops (loop_share), ' if args.loop_share else ''}"
+        f"trained on Omega enlarged {args.train_scale or 1.25:g}x, "
+        f"{'grad V(0, t) = 0 built into the ansatz (flat_origin), ' if args.flat_origin else ''}"
+        f"{'each stage from fresh weights (no warm start), ' if args.cold_start else ''}"
         f"{f'LM{rule}, ' if rule else ''}"
         f"seed {args.seed}, {args.threads} thread(s) per run, "
         f"{args.workers or 1} run(s) at a time, {meta['machine']}; torch "
@@ -389,6 +495,7 @@ def main(argv=None) -> int:
             f"{r.get('rejected', 0)} | {_sci(r.get('horizon_floor'))} |"
         )
     lines += [f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['status']} |||||||||" for r in missing]
+    lines += _budget_lines(rows)
     lines.append("")
     for name, slope in fits.items():
         if slope is not None:

@@ -94,7 +94,10 @@ class TrainConfig:
       your own); ``()`` trains nothing (a warm-started stage keeps the previous stage's weights).
     * ``max_time``: a cap on a stage's training wall seconds (phases not yet started when it passes are skipped),
       or None.
-    * ``warm_start``: initialise each extension stage from the previous stage's weights.
+    * ``warm_start``: initialise each extension stage from the previous stage's weights. A warm stage can keep its
+      terminal cost's error where it was instead of handing it on along the optimal loops as Theorem 3's exact
+      stage does. From fresh weights (False) it does not, but each stage fits its whole correction again and can
+      fit it worse (chapter 8, section 6).
     * ``retries``: extra attempts at a stage whose training failed, each with a new seed (the stage's seed +
       1000 per attempt); the attempt with the lowest final training loss is kept. The first stage (the only one
       that starts from random weights, where a bad local minimum is likely) is always tried ``1 + retries``

@@ -31,6 +31,7 @@ __all__ = [
     "manoeuvres",
     "loop_residual",
     "against_dimension",
+    "carried_error",
 ]
 
 CMAP = "viridis"
@@ -541,4 +542,39 @@ def against_dimension(rows, fits: dict | None = None):
         ax.grid(alpha=0.3, which="both")
     fig.legend(*err.get_legend_handles_labels(), loc="lower center", ncol=2, frameon=False, handlelength=1.8)
     fig.tight_layout(rect=(0, 0.17, 1, 1))
+    return fig
+
+
+def carried_error(before, after: dict, goal: float | None = None, title: str = ""):
+    """What a stage of a chain hands on: each state's error after the stage against its terminal cost's error at
+    the same state, one scatter per series, with the diagonal (the error kept where it was) and the goal.
+
+    * ``before``: (N,) the terminal cost's errors (e.g. V - V* of the chain one stage shorter, per max V*).
+    * ``after``: label -> (N,) errors at the same states after the stage, e.g. the learned stage's and what an
+      exact stage would hand on (the terminal cost's error where the optimal loop has gone by the stage's end).
+    * ``goal``: an error bound drawn as dotted lines at plus and minus it; None: none.
+    * ``title``: the figure's title.
+    """
+    before = np.asarray(before, dtype=float)
+    if before.ndim != 1:
+        raise ValueError(f"before must be 1-D; got shape {before.shape}")
+    fig, ax = plt.subplots(figsize=(WIDTH * 0.75, 4.4))
+    for (label, errors), marker in zip(after.items(), "o^sv", strict=False):
+        errors = np.asarray(errors, dtype=float)
+        if errors.shape != before.shape:
+            raise ValueError(f"{label}: errors must have the shape of before {before.shape}; got {errors.shape}")
+        ax.scatter(before, errors, s=4, marker=marker, alpha=0.5, label=label, rasterized=True)
+    span = float(np.max(np.abs(before)))
+    ax.plot([-span, span], [-span, span], color="0.3", linestyle="--", linewidth=1, label="kept where it was")
+    if goal is not None:
+        for sign in (1, -1):
+            ax.axhline(sign * goal, color="k", linestyle=":", linewidth=1, label="goal" if sign > 0 else None)
+    ax.ticklabel_format(style="sci", scilimits=(-2, 2))
+    ax.set_xlabel("terminal cost's error (per max V*)")
+    ax.set_ylabel("error after the stage (per max V*)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2, frameon=False, markerscale=3)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
     return fig

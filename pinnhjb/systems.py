@@ -803,23 +803,39 @@ def rigid_body(train_scale=None) -> ControlAffineSystem:
         Q,
         w3 / 2 * np.eye(3),
         domain=omega,
-        train_domain=(1.1 if scale is None else np.asarray(scale)[:, None]) * omega,
+        train_domain=_scaled(omega, scale, 1.1),
         params={} if scale is None else {"train_scale": scale},
         builder="rigid_body",
     )
 
 
-def _rigid_body_train_scale(train_scale) -> list[float] | None:
-    """:func:`rigid_body`'s ``train_scale`` checked and as six floats; None stays None (the default box)."""
+def _train_scale(train_scale, n: int, what: str) -> list[float] | None:
+    """A builder's ``train_scale`` checked and as n floats (one per coordinate); None stays None (its default box).
+
+    * ``train_scale``: one number or n, each finite and >= 1 (the training box contains Omega).
+    * ``n``: the state dimension.
+    * ``what``: the builder's name, for the error.
+    """
     if train_scale is None:
         return None
     try:
-        scale = np.broadcast_to(np.asarray(train_scale, dtype=float), (6,)).tolist()
+        scale = np.broadcast_to(np.asarray(train_scale, dtype=float), (n,)).tolist()
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"train_scale must be one number or six; got {train_scale!r}") from exc
+        raise ValueError(f"{what}: train_scale must be one number or {n}; got {train_scale!r}") from exc
     if not all(np.isfinite(a) and a >= 1.0 for a in scale):
-        raise ValueError(f"train_scale must be >= 1 (the training box contains Omega); got {scale}")
-    if scale[1] * np.pi / 3 >= np.pi / 2:
+        raise ValueError(f"{what}: train_scale must be >= 1 (the training box contains Omega); got {scale}")
+    return scale
+
+
+def _scaled(omega: np.ndarray, scale: list[float] | None, default: float) -> np.ndarray:
+    """The training box: Omega (centred on the origin) enlarged by ``scale`` per coordinate, or by ``default``."""
+    return (default if scale is None else np.asarray(scale)[:, None]) * np.asarray(omega, dtype=float)
+
+
+def _rigid_body_train_scale(train_scale) -> list[float] | None:
+    """:func:`rigid_body`'s ``train_scale`` checked and as six floats; None stays None (the default box)."""
+    scale = _train_scale(train_scale, 6, "rigid_body")
+    if scale is not None and scale[1] * np.pi / 3 >= np.pi / 2:
         raise ValueError(
             f"train_scale for the pitch theta must be below 1.5 (abs(theta) < pi/2, where the Euler angles are "
             f"singular); got {scale[1]}"
@@ -827,7 +843,7 @@ def _rigid_body_train_scale(train_scale) -> list[float] | None:
     return scale
 
 
-def lq_ladder(k: int) -> ControlAffineSystem:
+def lq_ladder(k: int, train_scale=None) -> ControlAffineSystem:
     """A chain of k unit masses on a line and unit springs, one force per mass: linear, n = 2k, m = k, V* by CARE.
 
     Mass 1 is tied to a wall and each mass to its neighbours; mass k's right end is free. Positions q and
@@ -838,18 +854,22 @@ def lq_ladder(k: int) -> ControlAffineSystem:
     (:func:`linear_quadratic`'s margin); ``V*(x) = x'Px``, ``mu*(x) = -B'Px`` with P from :func:`pinnhjb.lq.care`.
 
     * ``k``: the number of masses, an integer >= 1.
+    * ``train_scale``: the training box as Omega enlarged about the origin by this factor, one number or one per
+      coordinate, each >= 1; None: 1.25.
     """
     k = _dimension(k, "k", "lq_ladder", 1)
+    scale = _train_scale(train_scale, 2 * k, "lq_ladder")
+    omega = np.array([[-1.0, 1.0]] * (2 * k))
     stiffness = 2.0 * np.eye(k) - np.eye(k, k=1) - np.eye(k, k=-1)
     stiffness[-1, -1] = 1.0
     A = np.block([[np.zeros((k, k)), np.eye(k)], [-stiffness, np.zeros((k, k))]])
     B = np.vstack([np.zeros((k, k)), np.eye(k)])
-    return _linear_quadratic(
-        A, B, np.eye(2 * k), np.eye(k), [[-1.0, 1.0]] * (2 * k), None, "lq_ladder", {"k": k}, "lq_ladder"
-    )
+    params = {"k": k} if scale is None else {"k": k, "train_scale": scale}
+    train = _scaled(omega, scale, 1.25)
+    return _linear_quadratic(A, B, np.eye(2 * k), np.eye(k), omega, train, "lq_ladder", params, "lq_ladder")
 
 
-def converse(n: int) -> ControlAffineSystem:
+def converse(n: int, train_scale=None) -> ControlAffineSystem:
     """A nonlinear system in n dimensions (n even) with a known V*, built by the converse-HJB method.
 
     Chosen: ``V*(x) = x'Px + 1/2 sum_i x_i^4`` with P = I plus 1/4 on the first off-diagonals (eigenvalues in
@@ -871,8 +891,11 @@ def converse(n: int) -> ControlAffineSystem:
     than V* itself, already at n = 2, where with this constant gain it reaches a relative value error below 1e-4.
 
     * ``n``: the state dimension, an even integer >= 2.
+    * ``train_scale``: the training box as Omega enlarged about the origin by this factor, one number or one per
+      coordinate, each >= 1; None: 1.25.
     """
     n = _dimension(n, "n", "converse", 2, even=True)
+    scale = _train_scale(train_scale, n, "converse")
     m = n // 2
     P = np.eye(n) + 0.25 * (np.eye(n, k=1) + np.eye(n, k=-1))
     S = np.zeros((n, n))
@@ -916,10 +939,10 @@ def converse(n: int) -> ControlAffineSystem:
         Q,
         R,
         domain=[[-1.0, 1.0]] * n,
-        train_domain=[[-1.25, 1.25]] * n,
+        train_domain=_scaled([[-1.0, 1.0]] * n, scale, 1.25),
         value_star=value_star,
         policy_star=policy_star,
-        params={"n": n},
+        params={"n": n} if scale is None else {"n": n, "train_scale": scale},
         builder="converse",
     )
 

@@ -66,6 +66,42 @@ def test_dimension_lm_points_set_every_n_and_are_checked_before_any_run(tmp_path
     assert "900 LM points per iteration at every n" in (tmp_path / "dimension.md").read_text()
 
 
+def test_dimension_train_scale_flat_origin_budget_and_save(tmp_path, capsys):
+    """--train-scale sets every system's training box, --flat-origin the ansatz, --save stores the chains
+    (loadable, with that box and ansatz), --budget-states follows the largest errors along their loops and each
+    stage after the first says how much of its error it carried; wrong values are refused before any run."""
+    import numpy as np
+
+    import pinnhjb as ph
+
+    dimension = _module("dimension")
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "0.5"]
+    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3"]
+    for bad, says in ((["--train-scale", "0.9"], "train_scale must be >= 1"), (["--budget-states", "-1"], ">= 0")):
+        with pytest.raises(SystemExit):
+            dimension.main([*tiny, *bad, "--out", str(tmp_path / "bad")])
+        assert says in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    more = ["--train-scale", "1.5", "--flat-origin", "--cold-start", "--budget-states", "3", "--save"]
+    more += ["--max-horizon", "1"]
+    dimension.main([*tiny, *more, "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "dimension.json").read_text())
+    (row,) = record["rows"]
+    config = record["meta"]["configs"]["default"]
+    assert record["meta"]["train_scale"] == 1.5 and config["flat_origin"] and not config["warm_start"]
+    sol = ph.load(tmp_path / "chains" / "lq_ladder-n2-default.pt")
+    np.testing.assert_allclose(sol.system.train_domain, 1.5 * sol.system.domain)
+    assert sol.horizon == row["T"] == 1.0 and all(s.model.flat_origin for s in sol.stages)
+    first, second = row["chain"]
+    assert first["carried"] is None and -1 <= second["carried"] <= 1
+    budget = row["budget"]
+    assert budget["states"] == 3 and len(budget["share_outside"]) == len(budget["reach_max"]) == 3
+    assert max(np.abs(budget["value_error"])) == pytest.approx(row["value_rel_error"], rel=1e-9)  # the largest
+    page = (tmp_path / "dimension.md").read_text()
+    assert "trained on Omega enlarged 1.5x" in page and "lq_ladder n = 2: of the 3 largest errors" in page
+    assert "(flat_origin)" in page and "each stage from fresh weights (no warm start)" in page
+    assert "the last stage's error, state by state, correlates" in page
+
+
 def test_horizon_floor_is_the_riccati_ode_s_error_and_falls_with_the_horizon():
     import pinnhjb as ph
 
@@ -135,6 +171,11 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     for key in ("E_ratio", "value_rel_error"):  # the same stage as one uninterrupted run trains
         assert straight[1][key] == pytest.approx(carried["stages"][1][key], rel=1e-6)
     assert f"the stored run `{tmp_path / 'out'}` carried on" in (tmp_path / "more" / "rigid_body.md").read_text()
+    cold = [*args, "--max-horizon", "1.5", "--resume", str(tmp_path / "straight"), "--cold-start"]
+    cold += ["--out", str(tmp_path / "cold")]  # carried on from fresh weights: allowed, and said
+    assert rigid_body.main(cold) == 0
+    page = (tmp_path / "cold" / "rigid_body.md").read_text()
+    assert "each stage from fresh weights (no warm start) from here on" in page
     for bad in (["--lm-steps", "6"], ["--seed", "1"], ["--max-horizon", "0.5"]):  # other settings: refused
         with pytest.raises(SystemExit):
             rigid_body.main([*more, *bad])

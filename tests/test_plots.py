@@ -45,6 +45,18 @@ def test_quadratic_fields_are_exact():
     assert np.allclose(fields["residual"], -np.einsum("ni,ij,nj->n", x, dP, x))
 
 
+def test_carried_error_draws_each_series_the_diagonal_and_the_goal():
+    rng = np.random.default_rng(0)
+    before = rng.normal(size=50) * 1e-4
+    fig = plots.carried_error(before, {"learned": before * 0.9, "exact": before * 0.3}, goal=1e-4)
+    (ax,) = fig.axes
+    assert len(ax.collections) == 2 and [line.get_label() for line in ax.lines][:1] == ["kept where it was"]
+    assert sum(1 for line in ax.lines if line.get_linestyle() == ":") == 2  # plus and minus the goal
+    plt.close(fig)
+    with pytest.raises(ValueError, match="shape of before"):
+        plots.carried_error(before, {"bad": before[:3]})
+
+
 def test_time_to_accuracy_draws_one_line_per_run_and_the_targets():
     fig = plots.time_to_accuracy(
         {"a": ([1.0, 5.0, 30.0], [1.0, 1e-2, 1e-5]), "b": ([8.0, 300.0], [0.5, 3e-2])}, targets={"paper": 1.5e-4}

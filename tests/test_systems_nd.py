@@ -151,9 +151,24 @@ def test_rigid_body_train_scale_sets_the_training_box_and_is_rebuilt_from_a_chec
     assert np.array_equal(ph.load(ph.save(sol, tmp_path / "wide.pt")).system.train_domain, wide.train_domain)
 
 
+@pytest.mark.parametrize("build", [lambda s: lq_ladder(2, s), lambda s: converse(4, s)], ids=["ladder", "converse"])
+def test_ladder_and_converse_train_scale_set_the_training_box(build, tmp_path):
+    plain = build(None)
+    np.testing.assert_allclose(plain.train_domain, 1.25 * plain.domain)  # the default box, unchanged
+    assert "train_scale" not in plain.params  # checkpoints made before the option load as before
+    wide = build(1.5)
+    np.testing.assert_allclose(wide.train_domain, 1.5 * wide.domain)
+    np.testing.assert_allclose(build([1, 1, 2, 2]).train_domain[:, 1], [1, 1, 2, 2])
+    assert fingerprint_difference(wide.fingerprint(), plain.fingerprint()) == ["train_domain"]
+    assert ph.systems.get_system(wide.builder, **wide.params).fingerprint() == wide.fingerprint()
+    for bad, match in ((0.9, ">= 1"), ([1.5, 1.5], "one number or 4"), (float("inf"), ">= 1")):
+        with pytest.raises(ValueError, match=match):
+            build(bad)
+
+
 @pytest.mark.parametrize(
     ("scale", "match"),
-    [(0.9, ">= 1"), ([1.1, 1.1], "one number or six"), (1.5, "below 1.5"), (float("nan"), ">= 1"), ("x", "six")],
+    [(0.9, ">= 1"), ([1.1, 1.1], "one number or 6"), (1.5, "below 1.5"), (float("nan"), ">= 1"), ("x", "or 6")],
 )
 def test_rigid_body_train_scale_refuses_bad_boxes(scale, match):
     with pytest.raises(ValueError, match=match):
