@@ -69,17 +69,12 @@ def true_errors(system, sol, points: int, seed: int) -> dict:
     }
 
 
-def carried(system, sol, k: int, points: int, seed: int) -> float | None:
+def carried(errors: list[np.ndarray], k: int) -> float | None:
     """How much of stage k's error is its terminal cost's, state by state: the correlation of V - V* after stage k
-    with V - V* after stage k - 1 (its terminal cost) over the states of :func:`true_errors`. Near 1: the stage hands
-    its terminal cost's error on where it sits, where an exact stage would move it to where the optimal loops have
-    gone by then. None for the first stage."""
-    if k < 2:
-        return None
-    x = _states(system, points, seed)
-    v_star = system.value_star(x).detach().numpy()
-    now, before = (sol.truncated(j).value(x.numpy()) - v_star for j in (k, k - 1))
-    return float(np.corrcoef(now, before)[0, 1])
+    with V - V* after stage k - 1 (its terminal cost), ``errors[j - 1]`` being V - V* after stage j on the states
+    of :func:`true_errors`. Near 1: the stage hands its terminal cost's error on where it sits, where an exact stage
+    would move it to where the optimal loops have gone by then. None for the first stage."""
+    return None if k < 2 else float(np.corrcoef(errors[k - 1], errors[k - 2])[0, 1])
 
 
 def horizon_floor(system, horizon: float, points: int, seed: int) -> float | None:
@@ -132,6 +127,9 @@ def run(task: dict) -> dict:
             sol = solver.extend(sol, to=sol.horizon + step)
     wall = time.perf_counter() - start
     weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
+    x = _states(system, task["points"], task["seed"]).numpy()  # the states of true_errors, V* there
+    v_star = system.value_star(torch.as_tensor(x)).detach().numpy()
+    errors = [sol.truncated(k).value(x) - v_star for k in range(1, len(sol.stages) + 1)]
     chain = [  # each stage: its horizon, E, final training loss, the losses of the attempts not kept, true errors
         dict(
             T=s.end,
@@ -139,7 +137,7 @@ def run(task: dict) -> dict:
             final_loss=s.history.final_loss,
             rejected_losses=[a["final_loss"] for a in s.rejected],
             **true_errors(system, sol.truncated(k), task["points"], task["seed"]),
-            carried=carried(system, sol, k, task["points"], task["seed"]),
+            carried=carried(errors, k),
         )
         for k, s in enumerate(sol.stages, start=1)
     ]
@@ -148,9 +146,7 @@ def run(task: dict) -> dict:
     last = {k: chain[-1][k] for k in ("value_rel_error", "grad_mean_rel_error")}  # the whole chain's errors
     row = dict(_row(task, system, weights, measured, last), chain=chain)
     if task.get("budget"):  # where the largest errors come from: the residual along their loops, inside the box?
-        x = _states(system, task["points"], task["seed"])
-        v_star = system.value_star(x).detach().numpy()
-        row["budget"] = loop_budget(sol, x.numpy(), v_star, task["budget"])
+        row["budget"] = loop_budget(sol, x, v_star, task["budget"])
     if task.get("save"):
         ph.save(sol, Path(task["save"]) / f"{system.name}-n{system.n}-{task['recipe']}.pt")
     return row
