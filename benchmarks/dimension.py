@@ -10,7 +10,8 @@ the value are measured on ``--points`` seeded uniform states of Omega:
 * for the default recipe, where its largest errors come from (``--budget-states``: the residual along their
   learned closed loops, inside the training box or not) and, for each stage after the first, how much of its
   error it carried from its terminal cost (``carried``); ``--save`` stores its chains. ``--train-scale``,
-  ``--flat-origin`` and ``--cold-start`` change its training box, its ansatz and its warm start;
+  ``--flat-origin`` and ``--cold-start`` or ``--best-start`` change its training box, its ansatz and its warm
+  start;
 * at the dimensions ``--compare``, our first-order recipe ``adam_lbfgs`` and DeepXDE beside the default, on both
   systems. DeepXDE (``deepxde``) is the chain a user would build with its API (:mod:`_deepxde`: 3 x 100 in float32,
   ``adam_lbfgs``'s Adam and L-BFGS budgets a stage, soft conditions), extended with the same stages and the same
@@ -94,13 +95,22 @@ BUILDERS = {  # (n, train_scale) -> the system; train_scale None: the builder's 
 RECIPES = ("default", "adam_lbfgs", "deepxde")  # pinnhjb's presets, and DeepXDE
 
 
+def _start(stage) -> dict:
+    """With the best start (``warm_start="best"``): the start a stage kept and the other attempt's E ratio."""
+    if stage.started_warm is None:
+        return {}
+    other = stage.rejected[-1]["metrics"]
+    return {"started_warm": stage.started_warm, "other_E_ratio": other["E"] / other["E_zero"]}
+
+
 def run(task: dict) -> dict:
     """One (system, n, recipe) run: train by extension until the E bound or the horizon cap, then the true errors.
 
     * ``task``: ``system`` (a key of :data:`BUILDERS`), ``n``, ``recipe`` (one of :data:`RECIPES`), ``step``,
       ``ratio``, ``max_horizon``, ``points``, ``seed``, ``progress``, ``device`` (where the networks train),
       ``train_scale`` (the training box; None: the builder's), ``flat_origin`` (grad V(0, t) = 0 built into the
-      ansatz, :class:`~pinnhjb.TrainConfig`), ``cold`` (each stage from fresh weights: ``warm_start=False``),
+      ansatz, :class:`~pinnhjb.TrainConfig`), ``warm_start`` (True, False: each stage from fresh weights, or
+      ``"best"``: both, the lower E kept; default True),
       ``budget`` (how many of the largest errors get :func:`_common.loop_budget`; 0: none), ``save`` (a folder for
       the chain, or None).
     """
@@ -113,8 +123,7 @@ def run(task: dict) -> dict:
     config = config.replace(retries=task["retries"], loop_share=task.get("loop_share", 0.0))
     if task.get("flat_origin"):
         config = config.replace(flat_origin=True)
-    if task.get("cold"):
-        config = config.replace(warm_start=False)
+    config = config.replace(warm_start=task.get("warm_start", True))
     if task.get("lm"):  # the default recipe's stopping rule, from the command line
         config = config.with_phase("lm", **task["lm"])
     solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device=task["device"], progress=task["progress"])
@@ -138,6 +147,7 @@ def run(task: dict) -> dict:
             rejected_losses=[a["final_loss"] for a in s.rejected],
             **true_errors(system, sol.truncated(k), task["points"], task["seed"]),
             carried=carried(errors, k),
+            **_start(s),
         )
         for k, s in enumerate(sol.stages, start=1)
     ]
@@ -215,11 +225,23 @@ def _row(task: dict, system, weights: int, measured: dict, errors: dict) -> dict
     return row
 
 
-def _budget_lines(rows: list[dict]) -> list[str]:
-    """The results page's lines on where each default run's largest errors come from (``row["budget"]``) and how
-    much of the last stage's error it carried from its terminal cost (``carried``)."""
+def _diagnosis_lines(rows: list[dict]) -> list[str]:
+    """The results page's lines on each default run: the start each stage kept (``--best-start``), how much of
+    the last stage's error it carried from its terminal cost (``carried``), and where the largest errors come
+    from (``row["budget"]``)."""
     lines = []
     for r in rows:
+        chosen = [c for c in r.get("chain", []) if "started_warm" in c]
+        if chosen:
+            lines.append(
+                f"{r['system']} n = {r['n']}: the start kept at T = "
+                + ", ".join(
+                    f"{c['T']:g}: {'warm' if c['started_warm'] else 'fresh'} (E ratio {c['E_ratio']:.1e} against "
+                    f"{c['other_E_ratio']:.1e}, value error {c['value_rel_error']:.1e})"
+                    for c in chosen
+                )
+                + "."
+            )
         if r.get("chain") and r["chain"][-1].get("carried") is not None:
             lines.append(
                 f"{r['system']} n = {r['n']}: the last stage's error, state by state, correlates "
@@ -329,6 +351,12 @@ def main(argv=None) -> int:
         action="store_true",
         help="the default recipe's stages each from fresh weights, not the stage before's (TrainConfig.warm_start)",
     )
+    p.add_argument(
+        "--best-start",
+        action="store_true",
+        help="the default recipe's stages each trained from the stage before's weights and from fresh ones, the "
+        "lower E kept (TrainConfig.warm_start='best'; twice the training)",
+    )
     p.add_argument("--save", action="store_true", help="store the default recipe's chains under OUT/chains/")
     add_lm_arguments(p)
     p.add_argument(
@@ -347,8 +375,10 @@ def main(argv=None) -> int:
         p.error(str(exc))
     if args.flat_origin:
         default_config = default_config.replace(flat_origin=True)
-    if args.cold_start:
-        default_config = default_config.replace(warm_start=False)
+    if args.cold_start and args.best_start:
+        p.error("--cold-start and --best-start: choose one (--best-start tries the fresh start too)")
+    start = "best" if args.best_start else not args.cold_start  # TrainConfig.warm_start of the default recipe
+    default_config = default_config.replace(warm_start=start)
     if args.retries < 0:
         p.error(f"--retries must be an integer >= 0; got {args.retries}")
     if not 0 <= args.loop_share < 1:
@@ -408,7 +438,7 @@ def main(argv=None) -> int:
             lm=lm[recipe],
             budget=args.budget_states if recipe == "default" else 0,
             flat_origin=args.flat_origin and recipe == "default",
-            cold=args.cold_start and recipe == "default",
+            warm_start=start if recipe == "default" else True,
         )
         for name, ns in sizes.items()
         for n in ns
@@ -442,6 +472,7 @@ def main(argv=None) -> int:
         "train_scale": args.train_scale,
         "flat_origin": args.flat_origin,
         "cold_start": args.cold_start,
+        "best_start": args.best_start,
         "budget_states": args.budget_states,
         "workers": args.workers,
         "config": default_config.to_dict(),
@@ -473,6 +504,7 @@ def main(argv=None) -> int:
         f"trained on Omega enlarged {args.train_scale or 1.25:g}x, "
         f"{'grad V(0, t) = 0 built into the ansatz (flat_origin), ' if args.flat_origin else ''}"
         f"{'each stage from fresh weights (no warm start), ' if args.cold_start else ''}"
+        f"{'each stage from the stage before and from fresh weights, the lower E kept, ' if args.best_start else ''}"
         f"{f'LM{rule}, ' if rule else ''}"
         f"seed {args.seed}, {args.threads} thread(s) per run, "
         f"{args.workers or 1} run(s) at a time, {meta['machine']}; torch "
@@ -491,7 +523,7 @@ def main(argv=None) -> int:
             f"{r.get('rejected', 0)} | {_sci(r.get('horizon_floor'))} |"
         )
     lines += [f"| {r['system']} | {r['recipe']} | {r['n']} | {r['m']} | {r['status']} |||||||||" for r in missing]
-    lines += _budget_lines(rows)
+    lines += _diagnosis_lines(rows)
     lines.append("")
     for name, slope in fits.items():
         if slope is not None:

@@ -62,6 +62,7 @@ FINITE_T = 20.0
 TERMINAL = 0.5 * np.eye(6)  # their terminal cost abs(v)^2/2 + abs(w)^2/2 as x'Px
 FLAT = ", grad V(0, t) = 0 built into the ansatz (flat_origin)"
 COLD = ", each stage from fresh weights (no warm start)"
+BEST = ", each stage trained from the stage before's weights and from fresh ones, the lower E kept (warm_start='best')"
 TERMINALS = {"lqr": "x'Px (the linearisation's LQR value)", "zero": "0 (the paper's)"}
 POOL = ph.TrainConfig().pool_size  # the recipe's training states per stage
 
@@ -101,7 +102,18 @@ def chain(
     against ``ref`` after every stage (``every``) or after the last only. ``resume``: ``(sol, rows)`` of a stored
     run, extended from its last stage (stage k trains with seed + k, as in one uninterrupted run), its wall time
     carried on."""
-    solver = ph.FiniteHorizonSolver(system, config, seed=seed, device=args.device, progress=not args.no_progress)
+
+    def evaluate(sol):  # with the best start, each attempt's errors too (the one not kept is in Stage.rejected)
+        return {**sol.evaluate(config.eval_points_per_dim), **errors(sol, ref)}
+
+    solver = ph.FiniteHorizonSolver(
+        system,
+        config,
+        seed=seed,
+        device=args.device,
+        progress=not args.no_progress,
+        evaluate=evaluate if config.warm_start == "best" else None,
+    )
     rows, wall = ([], 0.0) if resume is None else (list(resume[1]), resume[1][-1]["wall_s"])
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -118,12 +130,21 @@ def chain(
             history = sol.stages[-1].history  # the stage's LM iterations and why it stopped
             row.update(iterations=history.step[-1] if history.step else 0, stop_reason=history.stop_reason)
             row.update(errors(sol, ref) if every or done else {"value_rel_error": None, "grad_mean_rel_error": None})
+            if sol.stages[-1].started_warm is not None:  # the best start: which attempt was kept, and the other's
+                other = sol.stages[-1].rejected[-1]["metrics"]
+                row.update(started_warm=sol.stages[-1].started_warm, other=_other(other))
             rows.append(row)
             print(f"  {row}", flush=True)
             if done:
                 return sol, rows, wall
             start = time.perf_counter()
             sol = solver.extend(sol, to=sol.horizon + step)
+
+
+def _other(metrics: dict) -> dict:
+    """The attempt not kept (the best start): its E / E(V = 0) and its errors against the reference."""
+    keys = ("value_rel_error", "grad_mean_rel_error")
+    return {"E_ratio": metrics["E"] / metrics["E_zero"], **{k: metrics[k] for k in keys}}
 
 
 def on_cpu(sol, system):
@@ -218,6 +239,12 @@ def main(argv=None) -> int:
         help="each stage from fresh weights, not the stage before's (TrainConfig.warm_start); with --resume, the "
         "stages trained here",
     )
+    p.add_argument(
+        "--best-start",
+        action="store_true",
+        help="each stage trained from the stage before's weights and from fresh ones, the lower E kept "
+        "(TrainConfig.warm_start='best'; twice the training); with --resume, the stages trained here",
+    )
     p.add_argument("--save", action="store_true", help="store the chains under ARTIFACTS/checkpoints/")
     p.add_argument("--artifacts", type=Path, default=ARTIFACTS, help="where references and checkpoints live")
     p.add_argument("--note", default="", help="a sentence on the conditions of the run, printed under the header")
@@ -230,6 +257,8 @@ def main(argv=None) -> int:
     )
     p.add_argument("--resume-chain", type=Path, default=None, help="the chain --resume extends (default: the run's)")
     args = parse(p, argv, device=True)
+    if args.cold_start and args.best_start:
+        p.error("--cold-start and --best-start: choose one (--best-start tries the fresh start too)")
     if args.budget_states < 1:
         p.error(f"--budget-states must be >= 1; got {args.budget_states}")
     try:
@@ -242,8 +271,8 @@ def main(argv=None) -> int:
             config = config.replace(width=args.width)
         if args.flat_origin:
             config = config.replace(flat_origin=True)
-        if args.cold_start:
-            config = config.replace(warm_start=False)
+        if args.cold_start or args.best_start:
+            config = config.replace(warm_start="best" if args.best_start else False)
         config = config.replace(loop_share=args.loop_share, loop_time=args.loop_time, loop_policy=args.loop_policy)
         if args.pool_size is not None:
             config = config.replace(pool_size=args.pool_size)
@@ -338,7 +367,7 @@ def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
     old, new = run["meta"]["args"], vars(args)
     differ = [k for k in SAME if old.get(k) != new[k]]
     stored_config = ph.TrainConfig.from_dict(run["meta"]["config"]).replace(warm_start=config.warm_start)
-    if stored_config != config:  # all but the warm start: a chain may go on from fresh weights (--cold-start)
+    if stored_config != config:  # all but the warm start: a chain may go on from fresh weights (--cold-start, ...)
         differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
     if differ:
         p.error(f"--resume: this run's settings differ from the stored run's: {', '.join(differ)}")
@@ -409,6 +438,21 @@ def _time_goal(wall: float, device: str) -> str:
     return f"| {what} | {wall:.0f} s | {'yes' if wall <= limit else 'no'} |"
 
 
+def _start(args) -> str:
+    """How the stages trained here started, for the page's header."""
+    start = BEST if args.best_start else COLD if args.cold_start else ""
+    return f"{start} from here on" if start and args.resume else start
+
+
+def _kept(row: dict) -> str:
+    """The best start's choice for one stage: the start kept, and the E ratio and value error of the other."""
+    if "started_warm" not in row:
+        return ""
+    other = row["other"]
+    kept = "warm" if row["started_warm"] else "fresh"
+    return f"{kept} ({other['E_ratio']:.1e}, {other['value_rel_error']:.1e})"
+
+
 def table(meta: dict, result: dict, args) -> str:
     """The results as a markdown page: the stages, the closed loop, and the issue's goals met or missed."""
     inf, loop = result["infinite"], result["infinite"]["closed_loop"]
@@ -418,7 +462,7 @@ def table(meta: dict, result: dict, args) -> str:
         "",
         f"Default recipe with a 3 x {args.width} network ({meta['weights']} weights), {args.points} LM points per "
         f"iteration{lm_rule(meta['config'])}{FLAT if args.flat_origin else ''}"
-        f"{(COLD + (' from here on' if args.resume else '')) if args.cold_start else ''}{_loops(meta['config'])}"
+        f"{_start(args)}{_loops(meta['config'])}"
         f"{_pool(meta['config'])}{_resumed_note(args)}, "
         f"stages of {args.step:g} s from the terminal cost {TERMINALS[args.terminal]}, trained on Omega enlarged "
         f"{_scale(args.train_scale)}, seed {args.seed}, {args.threads} thread(s), {meta['machine']}; "
@@ -431,13 +475,13 @@ def table(meta: dict, result: dict, args) -> str:
         "## Infinite horizon",
         "",
         "| T | E / E(V = 0) | max abs(V - V_ref) / max V_ref | mean rel. error of grad V | wall s (cumulative) | "
-        "LM iterations (stop) |",
-        "|---|---|---|---|---|---|",
+        "LM iterations (stop) | start kept (the other's E ratio, value error) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in inf["stages"]:
         lines.append(
             f"| {r['T']:g} | {r['E_ratio']:.1e} | {r['value_rel_error']:.1e} | {r['grad_mean_rel_error']:.1e} | "
-            f"{r['wall_s']:.0f} | {r['iterations']} ({r['stop_reason']}) |"
+            f"{r['wall_s']:.0f} | {r['iterations']} ({r['stop_reason']}) | {_kept(r)} |"
         )
     lines += [
         "",

@@ -97,7 +97,9 @@ class TrainConfig:
     * ``warm_start``: initialise each extension stage from the previous stage's weights. A warm stage can keep its
       terminal cost's error where it was instead of handing it on along the optimal loops as Theorem 3's exact
       stage does. From fresh weights (False) it does not, but each stage fits its whole correction again and can
-      fit it worse (chapter 8, section 6).
+      fit it worse (chapter 8, section 6). ``"best"``: train each extension stage both ways on the same points
+      and keep the one with the lower E (the metrics' ``"E"``, the paper's own check, no reference needed); twice
+      the training, and the attempt not kept is listed, with its metrics, in ``Stage.rejected``.
     * ``retries``: extra attempts at a stage whose training failed, each with a new seed (the stage's seed +
       1000 per attempt); the attempt with the lowest final training loss is kept. The first stage (the only one
       that starts from random weights, where a bad local minimum is likely) is always tried ``1 + retries``
@@ -131,7 +133,7 @@ class TrainConfig:
     loop_policy: str = "lqr"
     phases: tuple[Phase, ...] = (LevenbergMarquardt(),)
     max_time: float | None = None
-    warm_start: bool = True
+    warm_start: bool | str = True
     retries: int = 0
     retry_factor: float = 10.0
     eval_points_per_dim: int | None = None
@@ -167,7 +169,10 @@ class TrainConfig:
                     isinstance(self.flat_origin, bool) and (self.ansatz or not self.flat_origin),
                     "True or False (True needs ansatz=True)",
                 ),
-                "warm_start": (isinstance(self.warm_start, bool), "True or False"),
+                "warm_start": (
+                    isinstance(self.warm_start, bool) or self.warm_start == "best",
+                    "True, False or 'best'",
+                ),
                 "activation": (
                     isinstance(self.activation, str) and self.activation in ACTIVATIONS,
                     f"one of {sorted(ACTIVATIONS)}",

@@ -169,7 +169,8 @@ class Stage:
       this stage (:meth:`FiniteHorizonSolution.evaluate`), computed once when the stage is built; empty when it
       was never evaluated. The stage holds its own copy.
     * ``rejected``: the attempts at this stage that were trained and not kept (``config.retries``), each a dict
-      with its ``seed``, ``final_loss``, ``wall_time`` and ``stop_reason``; empty when the first attempt was kept.
+      with its ``seed``, ``final_loss``, ``wall_time`` and ``stop_reason`` (with ``config.warm_start="best"`` also
+      its ``warm_start`` and ``metrics``); empty when the first attempt was kept.
     """
 
     model: FiniteHorizonValue
@@ -192,6 +193,13 @@ class Stage:
     def end(self) -> float:
         """``start + length``: the T_k whose V_{T_k}(., 0) the chain ending here gives."""
         return self.start + self.length
+
+    @property
+    def started_warm(self) -> bool | None:
+        """With ``config.warm_start="best"``: whether the kept attempt started from the previous stage's weights
+        (the attempt in ``rejected`` started the other way); None when the start was not chosen."""
+        starts = [a["warm_start"] for a in self.rejected if "warm_start" in a]
+        return (not starts[-1]) if starts else None
 
 
 @dataclass(eq=False, frozen=True)
@@ -264,8 +272,8 @@ class FiniteHorizonSolution(_ValueSolution):
 
     @property
     def wall_time(self) -> float:
-        """Training seconds, all stages together."""
-        return float(sum(s.history.wall_time for s in self.stages))
+        """Training seconds, all stages together, their attempts not kept included."""
+        return float(sum(s.history.wall_time + sum(a["wall_time"] for a in s.rejected) for s in self.stages))
 
     def _model_value(self, x: Tensor, t: float) -> Tensor:
         t = float(t)
@@ -289,7 +297,8 @@ class FiniteHorizonSolution(_ValueSolution):
 
     def summary(self) -> list[dict]:
         """One row per stage: ``stage``, ``horizon`` reached, ``wall_time``, ``final_loss``, ``stop_reason`` and
-        the stage's metrics; ``rejected`` (how many attempts were not kept) in the rows of retried stages.
+        the stage's metrics; ``rejected`` (how many attempts were not kept) in the rows of retried stages, and
+        ``started_warm`` in those whose start was chosen (``config.warm_start="best"``).
 
         After ``solve_until`` a row also holds ``converged``: E <= tol at that stage (False in the last row when
         it stopped at ``max_horizon`` short of ``tol``).
@@ -303,6 +312,7 @@ class FiniteHorizonSolution(_ValueSolution):
                 "stop_reason": s.history.stop_reason,
                 **s.metrics,
                 **({"rejected": len(s.rejected)} if s.rejected else {}),
+                **({"started_warm": s.started_warm} if s.started_warm is not None else {}),
             }
             for i, s in enumerate(self.stages)
         ]

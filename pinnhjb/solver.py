@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
+import sys
 import warnings
 from collections.abc import Callable
 from dataclasses import replace
@@ -72,6 +74,15 @@ def _seed(seed) -> int:
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= int(seed) < 2**63 - 2**20:
         raise ValueError(f"seed must be an integer in [0, 2**63 - 2**20) (stage k uses seed + k); got {seed!r}")
     return int(seed)
+
+
+def _user_level() -> int:
+    """The ``stacklevel`` that makes a warning, given in the calling function, name the first line outside
+    pinnhjb (the user's call, however deep in the package the warning is raised)."""
+    frame, level, here = sys._getframe(1), 1, os.path.dirname(__file__)
+    while frame is not None and frame.f_code.co_filename.startswith(here):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _keep(exc: BaseException, solution) -> None:
@@ -191,7 +202,7 @@ class _Solver:
                 f"nothing useful (saturated? check the scale of Q and R, the horizon, or the optimiser phases' "
                 f"lr or damping)",
                 RuntimeWarning,
-                stacklevel=4,
+                stacklevel=_user_level(),
             )
 
 
@@ -209,12 +220,21 @@ class FiniteHorizonSolver(_Solver):
     """
 
     def _train_stage(
-        self, length: float, start: float, terminal, init: FiniteHorizonValue | None, index: int, previous_loss=None
+        self,
+        length: float,
+        start: float,
+        terminal,
+        init: FiniteHorizonValue | None,
+        index: int,
+        previous_loss=None,
+        warm: bool = True,
     ) -> Stage:
         """Train stage ``index`` on [0, ``length``]; with ``config.retries``, try again with new seeds (see
         :class:`~pinnhjb.config.TrainConfig`) and keep the attempt with the lowest final loss.
 
+        * ``init``: the previous stage's network (None for the first stage).
         * ``previous_loss``: the previous stage's final training loss (None for the first stage).
+        * ``warm``: start from ``init``'s weights; else from fresh ones.
         """
         cfg = self.config
         attempts: list[Stage] = []
@@ -237,10 +257,11 @@ class FiniteHorizonSolver(_Solver):
                 flat_origin=cfg.flat_origin,
             )
             model = model.to(device=self.device, dtype=self.dtype)
-            if init is not None and cfg.warm_start:
+            if init is not None and warm:
                 model.net.load_state_dict(init.net.state_dict())
             desc = f"{self.system.name} T={start:g}->{start + length:g}"
             desc += f", attempt {attempt + 1}" if attempt else ""
+            desc += ", fresh" if init is not None and not warm and cfg.warm_start == "best" else ""
             history = train_finite_horizon(self.system, model, cfg, seed=seed, progress=self.progress, desc=desc)
             for p in model.parameters():
                 p.requires_grad_(False)
@@ -273,6 +294,52 @@ class FiniteHorizonSolver(_Solver):
         )
         return sol
 
+    def _extended(self, chain: FiniteHorizonSolution, end: float, terminal_spec: dict) -> FiniteHorizonSolution:
+        """``chain`` with one more stage, trained on [0, ``end`` - T] with terminal cost V_T(., 0) and evaluated.
+
+        With ``config.warm_start="best"`` the stage is trained twice on the same points, from the previous stage's
+        weights and from fresh ones, and the attempt with the lower E is kept (the other is listed in
+        ``Stage.rejected`` with its ``warm_start`` and ``metrics``).
+        """
+        prev = chain.stages[-1]
+        terminal = ValueTerminalCost(prev.model)  # frozen after training; shared, not copied
+        mode = self.config.warm_start
+        tried = []
+        for warm in (True, False) if mode == "best" else (mode,):
+            stage = self._train_stage(
+                float(end - prev.end),
+                prev.end,
+                terminal,
+                prev.model,
+                len(chain.stages),
+                previous_loss=prev.history.final_loss,
+                warm=warm,
+            )
+            tried.append((warm, self._evaluated(chain.stages, stage, terminal_spec)))
+        if len(tried) == 1:
+            return tried[0][1]
+        E = [t.metrics.get("E") for _, t in tried]
+        if any(not isinstance(e, numbers.Real) for e in E):
+            exc = ValueError(
+                "warm_start='best' keeps the attempt with the lower E, but the evaluate hook returned no number "
+                f"'E' (got {E[0]!r} and {E[1]!r}): return E from the hook, or use warm_start=True or False"
+            )
+            _keep(exc, tried[0][1])
+            raise exc
+        kept = 1 if math.isnan(E[0]) or E[1] < E[0] else 0
+        (warm, loser), winner = tried[1 - kept], tried[kept][1]
+        lost = loser.stages[-1]
+        entry = {
+            "seed": lost.seed,
+            "final_loss": lost.history.final_loss,
+            "wall_time": lost.history.wall_time,
+            "stop_reason": lost.history.stop_reason,
+            "warm_start": warm,
+            "metrics": dict(lost.metrics),
+        }
+        stage = replace(winner.stages[-1], rejected=(*winner.stages[-1].rejected, entry))
+        return FiniteHorizonSolution(self.system, self.config, [*chain.stages, stage], terminal_spec)
+
     def solve(self, horizon: float, terminal_cost=None) -> FiniteHorizonSolution:
         """Algorithm 1: train v_T on Omega x [0, horizon] :eq:`eq-hjbt`; a chain of one stage.
 
@@ -299,8 +366,8 @@ class FiniteHorizonSolver(_Solver):
         * ``callback``: called with the chain after every stage (e.g. to save a checkpoint).
 
         Each new stage trains V' only on [0, step] with terminal cost V_T(., 0), the previous stage's frozen
-        network, warm-started from its weights when ``config.warm_start``. On KeyboardInterrupt the stages done so
-        far are returned with ``interrupted=True``.
+        network, warm-started from its weights when ``config.warm_start`` (with ``"best"``: trained both ways, the
+        lower E kept). On KeyboardInterrupt the stages done so far are returned with ``interrupted=True``.
         """
         if not isinstance(solution, FiniteHorizonSolution):
             raise TypeError(f"extend needs a FiniteHorizonSolution; got {type(solution).__name__}")
@@ -331,17 +398,7 @@ class FiniteHorizonSolver(_Solver):
         current = solution
         try:
             for end in ends:
-                prev = current.stages[-1]
-                terminal = ValueTerminalCost(prev.model)  # frozen after training; shared, not copied
-                stage = self._train_stage(
-                    float(end - prev.end),
-                    prev.end,
-                    terminal,
-                    prev.model,
-                    len(current.stages),
-                    previous_loss=prev.history.final_loss,
-                )
-                current = self._evaluated(current.stages, stage, solution.terminal_spec)
+                current = self._extended(current, end, solution.terminal_spec)
                 if callback is not None:
                     callback(current)
         except KeyboardInterrupt:

@@ -104,6 +104,8 @@ def _plain(d: dict) -> dict:
     for k, v in d.items():
         if isinstance(v, (np.floating, np.integer)):
             v = v.item()
+        elif isinstance(v, dict):
+            v = _plain(v)
         out[k] = v
     return out
 

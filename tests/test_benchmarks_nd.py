@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -102,6 +103,22 @@ def test_dimension_train_scale_flat_origin_budget_and_save(tmp_path, capsys):
     assert "the last stage's error, state by state, correlates" in page
 
 
+def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
+    dimension = _module("dimension")
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "1"]
+    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3", "--budget-states", "0"]
+    with pytest.raises(SystemExit):
+        dimension.main([*tiny, "--best-start", "--cold-start", "--out", str(tmp_path / "bad")])
+    assert "choose one" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    dimension.main([*tiny, "--best-start", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "dimension.json").read_text())
+    assert record["meta"]["configs"]["default"]["warm_start"] == "best"
+    first, second = record["rows"][0]["chain"]
+    assert "started_warm" not in first and second["E_ratio"] <= second["other_E_ratio"]
+    kept = "warm" if second["started_warm"] else "fresh"
+    assert f"lq_ladder n = 2: the start kept at T = 1: {kept} (E ratio" in (tmp_path / "dimension.md").read_text()
+
+
 def test_horizon_floor_is_the_riccati_ode_s_error_and_falls_with_the_horizon():
     import pinnhjb as ph
 
@@ -171,11 +188,27 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     for key in ("E_ratio", "value_rel_error"):  # the same stage as one uninterrupted run trains
         assert straight[1][key] == pytest.approx(carried["stages"][1][key], rel=1e-6)
     assert f"the stored run `{tmp_path / 'out'}` carried on" in (tmp_path / "more" / "rigid_body.md").read_text()
-    cold = [*args, "--max-horizon", "1.5", "--resume", str(tmp_path / "straight"), "--cold-start"]
+    chain = tmp_path / "straight.pt"  # kept aside: each run below stores its own chain where this one was
+    shutil.copy(tmp_path / "artifacts" / "checkpoints" / "rigid_body_inf" / "seed0.pt", chain)
+    cold = [*args, "--max-horizon", "1.5", "--resume", str(tmp_path / "straight"), "--resume-chain", str(chain)]
+    cold += ["--cold-start"]
     cold += ["--out", str(tmp_path / "cold")]  # carried on from fresh weights: allowed, and said
     assert rigid_body.main(cold) == 0
     page = (tmp_path / "cold" / "rigid_body.md").read_text()
     assert "each stage from fresh weights (no warm start) from here on" in page
+    best = [*args, "--max-horizon", "1.5", "--resume", str(tmp_path / "straight"), "--resume-chain", str(chain)]
+    best += ["--best-start"]
+    assert rigid_body.main([*best, "--out", str(tmp_path / "best")]) == 0  # both starts tried, the lower E kept
+    row = json.loads((tmp_path / "best" / "rigid_body.json").read_text())["infinite"]["stages"][-1]
+    fresh = json.loads((tmp_path / "cold" / "rigid_body.json").read_text())["infinite"]["stages"][-1]
+    tried_fresh = row["other"] if row["started_warm"] else row  # the --cold-start stage, trained again
+    assert tried_fresh["E_ratio"] == pytest.approx(fresh["E_ratio"], rel=1e-6)
+    assert row["E_ratio"] < row["other"]["E_ratio"]
+    page = (tmp_path / "best" / "rigid_body.md").read_text()
+    assert "the lower E kept (warm_start='best') from here on" in page
+    assert f"| {'warm' if row['started_warm'] else 'fresh'} ({row['other']['E_ratio']:.1e}, " in page
+    with pytest.raises(SystemExit):  # one start rule at a time
+        rigid_body.main([*best, "--cold-start", "--out", str(tmp_path / "both")])
     for bad in (["--lm-steps", "6"], ["--seed", "1"], ["--max-horizon", "0.5"]):  # other settings: refused
         with pytest.raises(SystemExit):
             rigid_body.main([*more, *bad])

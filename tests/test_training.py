@@ -538,3 +538,56 @@ def test_loop_policy_terminal_follows_the_terminal_costs_policy(pools):
     assert torch.equal(terminal_zero, lqr_zero)
     assert ph.TrainConfig.from_dict(ph.TrainConfig(loop_policy="terminal").to_dict()).loop_policy == "terminal"
     assert "loop_policy" not in ph.TrainConfig().to_dict()
+
+
+# ------------------------------------------------------------------------------ warm_start="best"
+def scripted_E(values):
+    """An evaluate hook that reports the E values ``values`` in turn (and counts its calls)."""
+    calls = []
+
+    def evaluate(sol):
+        calls.append(sol.horizon)
+        return {"E": values[len(calls) - 1]}
+
+    return evaluate, calls
+
+
+def best_solver(pendulum, evaluate):
+    config = ph.TrainConfig.preset("quick", **{**FAST, "phases": (), "warm_start": "best"})
+    return ph.FiniteHorizonSolver(pendulum, config, seed=0, device="cpu", progress=False, evaluate=evaluate)
+
+
+def test_best_start_trains_both_ways_and_keeps_the_lower_E(pendulum, tmp_path):
+    # no training (phases=()): a warm stage keeps the previous weights, a fresh one its seeded initial weights
+    evaluate, calls = scripted_E([1.0, 0.5, 0.3, 0.2, 0.4])
+    sol = best_solver(pendulum, evaluate).extend(best_solver(pendulum, evaluate).solve(0.5), to=1.5, step=0.5)
+    assert calls == [0.5, 1.0, 1.0, 1.5, 1.5]  # each extension stage evaluated twice: warm, then fresh
+    first, second, third = sol.stages
+    assert first.started_warm is None and first.rejected == ()
+    assert second.started_warm is False and second.metrics["E"] == 0.3  # the fresh attempt's lower E
+    assert second.rejected[0]["warm_start"] is True and second.rejected[0]["metrics"] == {"E": 0.5}
+    assert third.started_warm is True and third.metrics["E"] == 0.2
+    assert_same_weights(third.model.net, second.model.net)
+    pairs = zip(second.model.net.parameters(), first.model.net.parameters())
+    assert not all(torch.equal(a, b) for a, b in pairs)
+    rows = sol.summary()
+    assert [r.get("started_warm") for r in rows] == [None, False, True] and rows[1]["rejected"] == 1
+    assert sol.wall_time == pytest.approx(
+        sum(s.history.wall_time for s in sol.stages) + sum(s.rejected[0]["wall_time"] for s in sol.stages[1:])
+    )
+    loaded = ph.load(ph.save(sol, tmp_path / "best.pt"), pendulum)
+    assert [s.started_warm for s in loaded.stages] == [None, False, True] and loaded.config.warm_start == "best"
+
+
+def test_best_start_needs_E_from_the_hook_and_keeps_what_trained(pendulum):
+    evaluate, _ = scripted_E([1.0, 0.5, 0.3])
+    base = best_solver(pendulum, evaluate).solve(0.5)
+    with pytest.raises(ValueError, match="warm_start='best' keeps the attempt with the lower E") as info:
+        best_solver(pendulum, lambda sol: {"loss": 1.0}).extend(base, to=1.0)
+    assert info.value.partial_solution.horizon == 1.0  # the warm attempt, trained and kept
+
+
+@pytest.mark.parametrize("bad", ["cold", 1, None])
+def test_warm_start_must_be_a_bool_or_best(bad):
+    with pytest.raises(ValueError, match=r"warm_start=.*expected True, False or 'best'"):
+        ph.TrainConfig(warm_start=bad)
