@@ -253,7 +253,7 @@ def _diagnosis_lines(rows: list[dict]) -> list[str]:
                 f"{r['system']} n = {r['n']}: of the {b['states']} largest errors ({err.min():.1e} to {err.max():.1e} "
                 f"of max V*), {b['leave_box']} have learned closed loops that leave the training box (reach at most "
                 f"{max(b['reach_max']):.2f} of its half-width); the residual outside accounts for up to "
-                f"{share.max():.0%} of a loop's integral (the integral over {b['t_final']:g} s: "
+                f"{share.max() + 0.0:.0%} of a loop's integral (the integral over {b['t_final']:g} s: "
                 f"{min(b['integral']):.1e} to {max(b['integral']):.1e} of max V*)."
             )
     return [""] + lines if lines else []

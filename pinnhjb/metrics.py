@@ -33,6 +33,7 @@ ValueFn = Callable[[Tensor], Tensor]
 __all__ = [
     "default_points_per_dim",
     "evaluation_grid",
+    "evaluation_states",
     "infinite_horizon_residual",
     "optimality_errors",
     "known_policy",
@@ -108,6 +109,19 @@ def _monte_carlo_batches(system, samples: int = MC_SAMPLES, seed: int = MC_SEED,
         k = min(batch, samples - done)
         yield lo + (hi - lo) * torch.rand(k, system.n, generator=gen, dtype=torch.float64)
         done += k
+
+
+def evaluation_states(system, points_per_dim: int | None = None) -> Tensor:
+    """The states E is measured on, as :func:`infinite_horizon_residual` with ``points=None`` draws them: the grid
+    of :func:`evaluation_grid`, or, above :data:`GRID_MAX_POINTS` grid points, the :data:`MC_SAMPLES` seeded
+    uniform states of Omega (float64, CPU).
+
+    * ``system``: the control-affine system.
+    * ``points_per_dim``: grid points per axis; None: :func:`default_points_per_dim`.
+    """
+    if uses_grid(system, points_per_dim):
+        return evaluation_grid(system, points_per_dim)
+    return torch.cat(list(_monte_carlo_batches(system)))
 
 
 def _chunks(x: Tensor, size: int = 16384):

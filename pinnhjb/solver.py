@@ -280,8 +280,15 @@ class FiniteHorizonSolver(_Solver):
         ]
         return replace(attempts[kept], rejected=rejected)
 
-    def _evaluated(self, done: list[Stage], stage: Stage, terminal_spec: dict) -> FiniteHorizonSolution:
-        """The chain ``done`` + ``stage``, where ``stage`` (just trained) gets its metrics from :meth:`evaluate`."""
+    def _check_stage(self, stage: Stage, number: int):
+        """Warn when chain stage ``number`` (from 1) is no better than V = 0."""
+        self._check_against_zero(stage.metrics, f"stage {number} ({self.system.name} T={stage.start:g}->{stage.end:g})")
+
+    def _evaluated(
+        self, done: list[Stage], stage: Stage, terminal_spec: dict, check: bool = True
+    ) -> FiniteHorizonSolution:
+        """The chain ``done`` + ``stage``, where ``stage`` (just trained) gets its metrics from :meth:`evaluate`;
+        ``check``: warn when it is no better than V = 0."""
         trained = FiniteHorizonSolution(self.system, self.config, [*done, stage], terminal_spec)
         try:
             metrics = self.evaluate(trained)
@@ -289,9 +296,8 @@ class FiniteHorizonSolver(_Solver):
             _keep(exc, trained)  # the stage trained: keep it even if its evaluation fails
             raise
         sol = FiniteHorizonSolution(self.system, self.config, [*done, replace(stage, metrics=metrics)], terminal_spec)
-        self._check_against_zero(
-            metrics, f"stage {len(sol.stages)} ({self.system.name} T={stage.start:g}->{stage.end:g})"
-        )
+        if check:
+            self._check_stage(sol.stages[-1], len(sol.stages))
         return sol
 
     def _extended(self, chain: FiniteHorizonSolution, end: float, terminal_spec: dict) -> FiniteHorizonSolution:
@@ -306,16 +312,21 @@ class FiniteHorizonSolver(_Solver):
         mode = self.config.warm_start
         tried = []
         for warm in (True, False) if mode == "best" else (mode,):
-            stage = self._train_stage(
-                float(end - prev.end),
-                prev.end,
-                terminal,
-                prev.model,
-                len(chain.stages),
-                previous_loss=prev.history.final_loss,
-                warm=warm,
-            )
-            tried.append((warm, self._evaluated(chain.stages, stage, terminal_spec)))
+            try:
+                stage = self._train_stage(
+                    float(end - prev.end),
+                    prev.end,
+                    terminal,
+                    prev.model,
+                    len(chain.stages),
+                    previous_loss=prev.history.final_loss,
+                    warm=warm,
+                )
+                tried.append((warm, self._evaluated(chain.stages, stage, terminal_spec, check=mode != "best")))
+            except (Exception, KeyboardInterrupt) as exc:  # the second attempt failed: keep the first, trained
+                if tried:
+                    _keep(exc, tried[0][1])
+                raise
         if len(tried) == 1:
             return tried[0][1]
         E = [t.metrics.get("E") for _, t in tried]
@@ -338,6 +349,7 @@ class FiniteHorizonSolver(_Solver):
             "metrics": dict(lost.metrics),
         }
         stage = replace(winner.stages[-1], rejected=(*winner.stages[-1].rejected, entry))
+        self._check_stage(stage, len(chain.stages) + 1)  # the attempt kept
         return FiniteHorizonSolution(self.system, self.config, [*chain.stages, stage], terminal_spec)
 
     def solve(self, horizon: float, terminal_cost=None) -> FiniteHorizonSolution:
@@ -401,8 +413,9 @@ class FiniteHorizonSolver(_Solver):
                 current = self._extended(current, end, solution.terminal_spec)
                 if callback is not None:
                     callback(current)
-        except KeyboardInterrupt:
-            stages = current.stages  # the stages trained and evaluated before the interrupt
+        except KeyboardInterrupt as exc:
+            # the stages trained and evaluated before the interrupt (with the best start, a first attempt too)
+            stages = (getattr(exc, "partial_solution", None) or current).stages
             warnings.warn(
                 f"interrupted: returning the {len(stages)} completed stage(s) up to T={stages[-1].end:g}", stacklevel=2
             )

@@ -591,3 +591,27 @@ def test_best_start_needs_E_from_the_hook_and_keeps_what_trained(pendulum):
 def test_warm_start_must_be_a_bool_or_best(bad):
     with pytest.raises(ValueError, match=r"warm_start=.*expected True, False or 'best'"):
         ph.TrainConfig(warm_start=bad)
+
+
+@pytest.mark.parametrize("failure", [KeyboardInterrupt, RuntimeError])
+def test_best_start_keeps_the_first_attempt_when_the_second_fails(pendulum, monkeypatch, failure):
+    evaluate, _ = scripted_E([1.0, 0.5, 0.3])
+    base = best_solver(pendulum, evaluate).solve(0.5)
+    real, calls = ph.solver.train_finite_horizon, []
+
+    def train(*args, **kwargs):  # the warm attempt trains, the fresh one fails
+        calls.append(kwargs["desc"])
+        if len(calls) == 2:
+            raise failure("stopped")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ph.solver, "train_finite_horizon", train)
+    if failure is KeyboardInterrupt:
+        with pytest.warns(UserWarning, match="interrupted: returning the 2 completed stage"):
+            sol = best_solver(pendulum, evaluate).extend(base, to=1.0)
+        assert sol.interrupted and sol.horizon == 1.0 and sol.stages[-1].metrics == {"E": 0.5}
+    else:
+        with pytest.raises(RuntimeError, match="stopped") as info:
+            best_solver(pendulum, evaluate).extend(base, to=1.0)
+        assert info.value.partial_solution.horizon == 1.0
+    assert calls[1].endswith(", fresh")

@@ -673,6 +673,10 @@ def test_E_in_high_dimension_is_monte_carlo_with_its_standard_error():
     assert out == metrics.infinite_horizon_residual(sys_, lambda x: 0.5 * q_sq(x))  # seeded: the same every time
     with pytest.raises(ValueError, match="exceeds GRID_MAX_POINTS"):
         metrics.evaluation_grid(sys_)
+    states = metrics.evaluation_states(sys_)  # E's own states: their mean square residual is E's flow part
+    assert states.shape == (metrics.MC_SAMPLES, n) and bool((states.abs() <= 1).all())
+    on_states = metrics.infinite_horizon_residual(sys_, lambda x: 0.5 * q_sq(x), points=states)
+    assert on_states == pytest.approx({k: out[k] for k in on_states}, rel=1e-12)
 
 
 @pytest.mark.parametrize("n, per_dim", [(1, None), (2, None), (2, 41), (3, None), (3, 21), (4, None)])
@@ -690,6 +694,7 @@ def test_small_cases_keep_their_exact_grid(n, per_dim):
     assert "E_samples" not in out
     grid = metrics.evaluation_grid(sys_, per_dim)
     assert out == metrics.infinite_horizon_residual(sys_, lambda x: 0.5 * q_sq(x), points=grid)
+    assert torch.equal(metrics.evaluation_states(sys_, per_dim), grid)
 
 
 def test_checkpoint_fingerprint_round_trip_and_tolerance(ctx):
