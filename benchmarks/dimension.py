@@ -95,7 +95,7 @@ BUILDERS = {  # (n, train_scale) -> the system; train_scale None: the builder's 
 RECIPES = ("default", "adam_lbfgs", "deepxde")  # pinnhjb's presets, and DeepXDE
 
 
-def _start(stage) -> dict:
+def _start_kept(stage) -> dict:
     """With the best start (``warm_start="best"``): the start a stage kept and the other attempt's E ratio."""
     if stage.started_warm is None:
         return {}
@@ -147,7 +147,7 @@ def run(task: dict) -> dict:
             rejected_losses=[a["final_loss"] for a in s.rejected],
             **true_errors(system, sol.truncated(k), task["points"], task["seed"]),
             carried=carried(errors, k),
-            **_start(s),
+            **_start_kept(s),
         )
         for k, s in enumerate(sol.stages, start=1)
     ]
