@@ -136,6 +136,44 @@ def lm_rule(config: dict) -> str:
     )
 
 
+def add_start_arguments(parser: argparse.ArgumentParser, note: str = "") -> None:
+    """Add ``--cold-start`` and ``--best-start``: how each extension stage starts (``TrainConfig.warm_start``),
+    read back by :func:`warm_start_of`.
+
+    * ``parser``: the script's parser.
+    * ``note``: a clause added to both helps (for example what the flags mean with ``--resume``).
+    """
+    parser.add_argument(
+        "--cold-start",
+        action="store_true",
+        help=f"each stage from fresh weights, not the stage before's (TrainConfig.warm_start){note}",
+    )
+    parser.add_argument(
+        "--best-start",
+        action="store_true",
+        help="each stage trained from the stage before's weights and from fresh ones, the lower E kept "
+        f"(TrainConfig.warm_start='best'; twice the training){note}",
+    )
+
+
+def warm_start_of(parser: argparse.ArgumentParser, args) -> bool | str:
+    """``TrainConfig.warm_start`` from :func:`add_start_arguments`'s flags (True when neither is given); both given
+    is refused through ``parser.error``."""
+    if args.cold_start and args.best_start:
+        parser.error("--cold-start and --best-start: choose one (--best-start tries the fresh start too)")
+    return "best" if args.best_start else not args.cold_start
+
+
+def other_attempt(stage, keys: tuple = ()) -> dict | None:
+    """With the best start: the attempt a stage did not keep (``Stage.other_attempt``), as its E / E(V = 0) and
+    the metrics named in ``keys``; None when the stage's start was not chosen."""
+    other = stage.other_attempt
+    if other is None:
+        return None
+    metrics = other["metrics"]
+    return {"E_ratio": metrics["E"] / metrics["E_zero"], **{k: metrics[k] for k in keys}}
+
+
 def loop_budget(sol, x: np.ndarray, v_ref: np.ndarray, count: int, t_final: float = 10.0) -> dict:
     """Where the largest value errors come from: the residual integrated along the learned closed loops
     (:meth:`~pinnhjb.FiniteHorizonSolution.residual_along_loop`) from the ``count`` states of ``x`` with the

@@ -46,11 +46,14 @@ from pathlib import Path
 import numpy as np
 from _common import (  # benchmarks/_common.py, a sibling
     add_lm_arguments,
+    add_start_arguments,
     lm_rule,
     lm_settings,
     loop_budget,
     machine,
+    other_attempt,
     parse,
+    warm_start_of,
 )
 
 import pinnhjb as ph
@@ -130,21 +133,15 @@ def chain(
             history = sol.stages[-1].history  # the stage's LM iterations and why it stopped
             row.update(iterations=history.step[-1] if history.step else 0, stop_reason=history.stop_reason)
             row.update(errors(sol, ref) if every or done else {"value_rel_error": None, "grad_mean_rel_error": None})
-            if sol.stages[-1].started_warm is not None:  # the best start: which attempt was kept, and the other's
-                other = sol.stages[-1].rejected[-1]["metrics"]
-                row.update(started_warm=sol.stages[-1].started_warm, other=_other(other))
+            other = other_attempt(sol.stages[-1], ("value_rel_error", "grad_mean_rel_error"))
+            if other is not None:  # the best start: which attempt was kept, and the other's E and errors
+                row.update(started_warm=sol.stages[-1].started_warm, other=other)
             rows.append(row)
             print(f"  {row}", flush=True)
             if done:
                 return sol, rows, wall
             start = time.perf_counter()
             sol = solver.extend(sol, to=sol.horizon + step)
-
-
-def _other(metrics: dict) -> dict:
-    """The attempt not kept (the best start): its E / E(V = 0) and its errors against the reference."""
-    keys = ("value_rel_error", "grad_mean_rel_error")
-    return {"E_ratio": metrics["E"] / metrics["E_zero"], **{k: metrics[k] for k in keys}}
 
 
 def on_cpu(sol, system):
@@ -233,18 +230,7 @@ def main(argv=None) -> int:
     p.add_argument("--dt", type=float, default=0.01)
     p.add_argument("--finite-step", type=float, default=4.0, help="stage length towards T = 20 (their setting)")
     p.add_argument("--skip-finite", action="store_true")
-    p.add_argument(
-        "--cold-start",
-        action="store_true",
-        help="each stage from fresh weights, not the stage before's (TrainConfig.warm_start); with --resume, the "
-        "stages trained here",
-    )
-    p.add_argument(
-        "--best-start",
-        action="store_true",
-        help="each stage trained from the stage before's weights and from fresh ones, the lower E kept "
-        "(TrainConfig.warm_start='best'; twice the training); with --resume, the stages trained here",
-    )
+    add_start_arguments(p, note="; with --resume, the stages trained here")
     p.add_argument("--save", action="store_true", help="store the chains under ARTIFACTS/checkpoints/")
     p.add_argument("--artifacts", type=Path, default=ARTIFACTS, help="where references and checkpoints live")
     p.add_argument("--note", default="", help="a sentence on the conditions of the run, printed under the header")
@@ -257,8 +243,7 @@ def main(argv=None) -> int:
     )
     p.add_argument("--resume-chain", type=Path, default=None, help="the chain --resume extends (default: the run's)")
     args = parse(p, argv, device=True)
-    if args.cold_start and args.best_start:
-        p.error("--cold-start and --best-start: choose one (--best-start tries the fresh start too)")
+    warm_start = warm_start_of(p, args)
     if args.budget_states < 1:
         p.error(f"--budget-states must be >= 1; got {args.budget_states}")
     try:
@@ -271,8 +256,7 @@ def main(argv=None) -> int:
             config = config.replace(width=args.width)
         if args.flat_origin:
             config = config.replace(flat_origin=True)
-        if args.cold_start or args.best_start:
-            config = config.replace(warm_start="best" if args.best_start else False)
+        config = config.replace(warm_start=warm_start)
         config = config.replace(loop_share=args.loop_share, loop_time=args.loop_time, loop_policy=args.loop_policy)
         if args.pool_size is not None:
             config = config.replace(pool_size=args.pool_size)

@@ -35,6 +35,7 @@ __all__ = [
     "evaluation_grid",
     "evaluation_states",
     "infinite_horizon_residual",
+    "residual_spread",
     "optimality_errors",
     "known_policy",
     "policy_of",
@@ -181,6 +182,37 @@ def _monte_carlo_residual(system, value_fn: ValueFn, samples: int = MC_SAMPLES) 
         "E_zero": zero / samples,
         "E_stderr": math.sqrt(var / samples),
         "E_samples": samples,
+    }
+
+
+def residual_spread(
+    system, field: Callable[[Tensor], Tensor], points_per_dim: int | None = None, top: float = 1e-3
+) -> dict:
+    """How E's mean square :eq:`eq-e` is spread over the states it is measured on: ``abs(E_e)`` per RMS of Q on
+    :func:`evaluation_states`, whose mean square is ``E_flow / E_zero`` of :func:`infinite_horizon_residual`.
+
+    * ``system``: the control-affine system.
+    * ``field``: E_e at states, a callable (N, n) -> (N,), for example a solution's ``residual_field``.
+    * ``points_per_dim``: as in :func:`evaluation_states`.
+    * ``top``: the fraction of the states, those of the largest residuals, whose share of the sum is reported.
+
+    Returns a dict: ``scaled`` (N,) numpy array, ``abs(E_e)`` / RMS of Q at each state; ``max`` and ``q99``, its
+    largest value and its 99th percentile; ``top_share``, the share of the sum of squares from the states at or
+    above its ``1 - top`` quantile.
+    """
+    if not 0 < top < 1:
+        raise ValueError(f"top must be in (0, 1); got {top}")
+    x = evaluation_states(system, points_per_dim)
+    with torch.no_grad():
+        q_rms = float((system.Q(x) ** 2).mean()) ** 0.5
+    e = field(x)
+    r = np.abs(e.detach().cpu().numpy() if isinstance(e, Tensor) else np.asarray(e)) / q_rms
+    sq = r**2
+    return {
+        "scaled": r,
+        "max": float(r.max()),
+        "q99": float(np.quantile(r, 0.99)),
+        "top_share": float(sq[r >= np.quantile(r, 1 - top)].sum() / sq.sum()),
     }
 
 

@@ -198,8 +198,15 @@ class Stage:
     def started_warm(self) -> bool | None:
         """With ``config.warm_start="best"``: whether the kept attempt started from the previous stage's weights
         (the attempt in ``rejected`` started the other way); None when the start was not chosen."""
-        starts = [a["warm_start"] for a in self.rejected if "warm_start" in a]
-        return (not starts[-1]) if starts else None
+        other = self.other_attempt
+        return None if other is None else not other["warm_start"]
+
+    @property
+    def other_attempt(self) -> dict | None:
+        """With ``config.warm_start="best"``: the attempt not kept, the entry of ``rejected`` that started the
+        other way (its ``warm_start``, ``metrics``, ...); None when the start was not chosen."""
+        others = [a for a in self.rejected if "warm_start" in a]
+        return others[-1] if others else None
 
 
 @dataclass(eq=False, frozen=True)

@@ -116,7 +116,17 @@ def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
     first, second = record["rows"][0]["chain"]
     assert "started_warm" not in first and second["E_ratio"] <= second["other_E_ratio"]
     kept = "warm" if second["started_warm"] else "fresh"
-    assert f"lq_ladder n = 2: the start kept at T = 1: {kept} (E ratio" in (tmp_path / "dimension.md").read_text()
+    page = (tmp_path / "dimension.md").read_text()
+    assert f"lq_ladder n = 2: the start kept at T = 1: {kept} (E ratio" in page
+    (tmp_path / "dimension.md").unlink()  # the page made again from the JSON alone is the same page
+    dimension.main(["--render", str(tmp_path)])
+    assert (tmp_path / "dimension.md").read_text() == page
+    record["meta"].pop("best_start")
+    (tmp_path / "dimension.json").write_text(json.dumps(record))
+    with pytest.raises(SystemExit):
+        dimension.main(["--render", str(tmp_path)])
+    assert "older dimension.py (its meta has no best_start)" in capsys.readouterr().err
+    assert (tmp_path / "dimension.md").read_text() == page  # a refused render leaves the page as it was
 
 
 def test_horizon_floor_is_the_riccati_ode_s_error_and_falls_with_the_horizon():

@@ -563,9 +563,10 @@ def test_best_start_trains_both_ways_and_keeps_the_lower_E(pendulum, tmp_path):
     sol = best_solver(pendulum, evaluate).extend(best_solver(pendulum, evaluate).solve(0.5), to=1.5, step=0.5)
     assert calls == [0.5, 1.0, 1.0, 1.5, 1.5]  # each extension stage evaluated twice: warm, then fresh
     first, second, third = sol.stages
-    assert first.started_warm is None and first.rejected == ()
+    assert first.started_warm is None and first.rejected == () and first.other_attempt is None
     assert second.started_warm is False and second.metrics["E"] == 0.3  # the fresh attempt's lower E
     assert second.rejected[0]["warm_start"] is True and second.rejected[0]["metrics"] == {"E": 0.5}
+    assert second.other_attempt is second.rejected[0] and third.other_attempt["warm_start"] is False
     assert third.started_warm is True and third.metrics["E"] == 0.2
     assert_same_weights(third.model.net, second.model.net)
     pairs = zip(second.model.net.parameters(), first.model.net.parameters())

@@ -26,6 +26,7 @@ import pinnhjb as ph
 from pinnhjb import cli, metrics
 from pinnhjb.gauss_newton import DivergenceError
 from pinnhjb.pinn import FiniteHorizonValue, ValueTerminalCost
+from pinnhjb.residuals import SteadyStateHJB
 from pinnhjb.solution import FiniteHorizonSolution, Stage
 from pinnhjb.storage import PERTURB_ENV, CheckpointError
 from pinnhjb.training import StatePool, TrainHistory
@@ -677,6 +678,13 @@ def test_E_in_high_dimension_is_monte_carlo_with_its_standard_error():
     assert states.shape == (metrics.MC_SAMPLES, n) and bool((states.abs() <= 1).all())
     on_states = metrics.infinite_horizon_residual(sys_, lambda x: 0.5 * q_sq(x), points=states)
     assert on_states == pytest.approx({k: out[k] for k in on_states}, rel=1e-12)
+    field = SteadyStateHJB(sys_, lambda x: 0.5 * q_sq(x)).field  # where E's mean square comes from
+    spread = metrics.residual_spread(sys_, field)
+    assert np.mean(spread["scaled"] ** 2) == pytest.approx(out["E_flow"] / out["E_zero"], rel=1e-12)
+    assert spread["max"] == spread["scaled"].max() > spread["q99"] > 0
+    assert 1e-3 < spread["top_share"] < 1  # a thousandth of the states: more than their count's share of E
+    with pytest.raises(ValueError, match="top must be in"):
+        metrics.residual_spread(sys_, field, top=1.0)
 
 
 @pytest.mark.parametrize("n, per_dim", [(1, None), (2, None), (2, 41), (3, None), (3, 21), (4, None)])
