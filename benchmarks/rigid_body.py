@@ -19,9 +19,10 @@ its open-loop control (``replay_value`` = ``value``).
   (:meth:`~pinnhjb.solution.FiniteHorizonSolution.residual_along_loop`), the share of its integral accrued
   outside the training box (``--train-scale`` sets that box: Omega enlarged by this factor, one or six numbers).
 * **Carried on.** ``--resume DIR`` extends the chain of a stored run (``DIR`` its ``--out``; the chain from its
-  ``--artifacts`` or ``--resume-chain``) to ``--max-horizon`` with the same settings (checked before any work);
-  stage k trains with seed + k as in one uninterrupted run, and the page reports the stored and new stages and
-  their wall time as one chain.
+  ``--artifacts`` or ``--resume-chain``) to ``--max-horizon`` with the same settings (checked before any work),
+  but for the start of the stages trained here (``--cold-start``, ``--best-start``) and their LM iterations
+  (``--lm-steps``); stage k trains with seed + k as in one uninterrupted run, and the page reports the stored and
+  new stages and their wall time as one chain.
 * **Finite horizon (their setting).** T = 20 with terminal cost ``abs(v)^2/2 + abs(w)^2/2``, reached by extension in
   stages of ``--finite-step``; V_20(., 0) against its own reference.
 
@@ -350,8 +351,11 @@ def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
         p.error("--resume extends the infinite-horizon chain only: pass --skip-finite, not --ablation")
     old, new = run["meta"]["args"], vars(args)
     differ = [k for k in SAME if old.get(k) != new[k]]
-    stored_config = ph.TrainConfig.from_dict(run["meta"]["config"]).replace(warm_start=config.warm_start)
-    if stored_config != config:  # all but the warm start: a chain may go on from fresh weights (--cold-start, ...)
+    stored_config = ph.TrainConfig.from_dict(run["meta"]["config"])
+    args.resumed_lm_steps = stored_config.phase("lm").steps  # the stored stages' LM iterations, for the page
+    # all but the start and the LM iterations: a chain may go on from fresh weights, or with longer stages
+    stored_config = stored_config.replace(warm_start=config.warm_start).with_phase("lm", steps=config.phase("lm").steps)
+    if stored_config != config:
         differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
     if differ:
         p.error(f"--resume: this run's settings differ from the stored run's: {', '.join(differ)}")
@@ -369,10 +373,15 @@ def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
     return sol, rows
 
 
-def _resumed_note(args) -> str:
+def _resumed_note(args, config: dict) -> str:
+    """The header's clause on ``--resume``: the stored run carried on, with its stages' LM iterations where the
+    stages trained here (the stored ``config``'s) have others."""
     if getattr(args, "resume", None) is None:
         return ""
-    return f", the stored run `{args.resume}` carried on (its stages, chain and wall time continued here)"
+    steps = next(p for p in config["phases"] if p["name"] == "lm")["steps"]
+    old = getattr(args, "resumed_lm_steps", steps)
+    its = f"; its stages trained {old} LM iterations each, those here {steps}" if old != steps else ""
+    return f", the stored run `{args.resume}` carried on (its stages, chain and wall time continued here{its})"
 
 
 def _loops(config: dict) -> str:
@@ -447,7 +456,7 @@ def table(meta: dict, result: dict, args) -> str:
         f"Default recipe with a 3 x {args.width} network ({meta['weights']} weights), {args.points} LM points per "
         f"iteration{lm_rule(meta['config'])}{FLAT if args.flat_origin else ''}"
         f"{_start(args)}{_loops(meta['config'])}"
-        f"{_pool(meta['config'])}{_resumed_note(args)}, "
+        f"{_pool(meta['config'])}{_resumed_note(args, meta['config'])}, "
         f"stages of {args.step:g} s from the terminal cost {TERMINALS[args.terminal]}, trained on Omega enlarged "
         f"{_scale(args.train_scale)}, seed {args.seed}, {args.threads} thread(s), {meta['machine']}; "
         f"torch {meta['torch']}; created {meta['created']}. Reference: "

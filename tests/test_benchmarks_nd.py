@@ -219,9 +219,16 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     assert f"| {'warm' if row['started_warm'] else 'fresh'} ({row['other']['E_ratio']:.1e}, " in page
     with pytest.raises(SystemExit):  # one start rule at a time
         rigid_body.main([*best, "--cold-start", "--out", str(tmp_path / "both")])
-    for bad in (["--lm-steps", "6"], ["--seed", "1"], ["--max-horizon", "0.5"]):  # other settings: refused
+    for bad in (["--points", "250"], ["--seed", "1"], ["--max-horizon", "0.5"]):  # other settings: refused
         with pytest.raises(SystemExit):
             rigid_body.main([*more, *bad])
+    longer = [*args, "--max-horizon", "1.5", "--resume", str(tmp_path / "straight"), "--resume-chain", str(chain)]
+    assert rigid_body.main([*longer, "--lm-steps", "7", "--out", str(tmp_path / "longer")]) == 0  # longer stages
+    rows = json.loads((tmp_path / "longer" / "rigid_body.json").read_text())["infinite"]["stages"]
+    assert [r["iterations"] for r in rows] == [5, 5, 7]
+    assert (
+        "its stages trained 5 LM iterations each, those here 7)" in (tmp_path / "longer" / "rigid_body.md").read_text()
+    )
 
 
 def test_time_goal_follows_the_device():
