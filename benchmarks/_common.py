@@ -74,9 +74,9 @@ def _cpu() -> str:
 
 
 def add_lm_arguments(parser: argparse.ArgumentParser, coarse: bool = True) -> None:
-    """Add ``--lm-steps``, ``--min-progress``, ``--lm-coarse`` and ``--stall-windows``: the Levenberg-Marquardt
-    phase's stopping rule and levels (:class:`pinnhjb.optimizers.LevenbergMarquardt`, whose defaults they take),
-    read back by :func:`lm_settings`.
+    """Add ``--lm-steps``, ``--min-progress``, ``--lm-coarse``, ``--stall-windows`` and ``--adaptive``: the
+    Levenberg-Marquardt phase's stopping rule, levels and adaptive share
+    (:class:`pinnhjb.optimizers.LevenbergMarquardt`, whose defaults they take), read back by :func:`lm_settings`.
 
     * ``parser``: the script's parser.
     * ``coarse``: also ``--lm-coarse`` (a script with its own ``--points-coarse`` passes False).
@@ -106,11 +106,20 @@ def add_lm_arguments(parser: argparse.ArgumentParser, coarse: bool = True) -> No
         default=recipe.stall_windows,
         help=f"the windows of the stall rule (default {recipe.stall_windows})",
     )
+    parser.add_argument(
+        "--adaptive",
+        type=float,
+        default=recipe.adaptive,
+        help="the share of each LM iteration's points chosen where the residual is largest, from "
+        f"{recipe.candidates} times as many fresh points (default {recipe.adaptive:g}: all drawn as usual)",
+    )
 
 
 def lm_settings(args) -> dict:
     """The LM phase's fields from :func:`add_lm_arguments`'s arguments (for ``config.with_phase("lm", ...)``)."""
     settings = {"min_progress": args.min_progress, "stall_windows": args.stall_windows}
+    if getattr(args, "adaptive", 0.0):
+        settings["adaptive"] = args.adaptive
     if getattr(args, "lm_coarse", False) is not False:
         settings["points_coarse"] = args.lm_coarse
     return settings if args.lm_steps is None else {**settings, "steps": args.lm_steps}
@@ -120,6 +129,11 @@ def lm_rule(config: dict) -> str:
     """How the stored ``config``'s LM phase stops, as a clause for a results page ("" for the recipe's rule). The
     points per iteration are not named: the width rule sets them per dimension."""
     lm = next(p for p in config["phases"] if p["name"] == "lm")
+    if lm.get("adaptive"):
+        plain = {k: v for k, v in lm.items() if k not in ("adaptive", "candidates")}
+        chosen = f"{lm['adaptive']:.0%} of each iteration's points chosen where the residual is largest"
+        rule = lm_rule({**config, "phases": [plain]})
+        return f" ({chosen}{'; ' + rule[2:] if rule else ')'}"
     if lm.get("min_progress") is None:
         return f" (no stall rule: {lm['steps']} iterations per stage, on the last level's points throughout)"
     recipe = LevenbergMarquardt()

@@ -90,11 +90,11 @@ def reference(system, horizon: float, points: int, seed: int, progress: bool, ar
 def errors(sol, ref: ReferenceGrid) -> dict:
     """max abs(V - V_ref) / max V_ref and the mean relative error of grad V at the converged reference points."""
     ok = ref.converged
-    x, v_ref, g_ref = ref.points[ok], ref.value[ok], ref.gradient[ok]
-    v, g = sol.value(x), sol.gradient(x)
+    x, g_ref = ref.points[ok], ref.gradient[ok]
+    g = sol.gradient(x)
     rel_g = np.linalg.norm(g - g_ref, axis=1) / np.maximum(np.linalg.norm(g_ref, axis=1), 1e-12)
     return {
-        "value_rel_error": float(np.max(np.abs(v - v_ref)) / np.max(np.abs(v_ref))),
+        "value_rel_error": float(ref.value_error(sol).max()),
         "grad_mean_rel_error": float(np.mean(rel_g)),
     }
 
@@ -352,9 +352,14 @@ def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
     old, new = run["meta"]["args"], vars(args)
     differ = [k for k in SAME if old.get(k) != new[k]]
     stored_config = ph.TrainConfig.from_dict(run["meta"]["config"])
-    args.resumed_lm_steps = stored_config.phase("lm").steps  # the stored stages' LM iterations, for the page
-    # all but the start and the LM iterations: a chain may go on from fresh weights, or with longer stages
-    stored_config = stored_config.replace(warm_start=config.warm_start).with_phase("lm", steps=config.phase("lm").steps)
+    # the stored stages' LM iterations and adaptive share, for the page
+    args.resumed_lm_steps, args.resumed_adaptive = stored_config.phase("lm").steps, stored_config.phase("lm").adaptive
+    # all but the start, the LM iterations and the adaptive share: a chain may go on from fresh weights, with longer
+    # stages, or with points chosen by their residual
+    new = config.phase("lm")
+    stored_config = stored_config.replace(warm_start=config.warm_start).with_phase(
+        "lm", steps=new.steps, adaptive=new.adaptive, candidates=new.candidates
+    )
     if stored_config != config:
         differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
     if differ:
@@ -378,9 +383,16 @@ def _resumed_note(args, config: dict) -> str:
     stages trained here (the stored ``config``'s) have others."""
     if getattr(args, "resume", None) is None:
         return ""
-    steps = next(p for p in config["phases"] if p["name"] == "lm")["steps"]
+    lm = next(p for p in config["phases"] if p["name"] == "lm")
+    steps, share = lm["steps"], lm.get("adaptive", 0.0)
     old = getattr(args, "resumed_lm_steps", steps)
     its = f"; its stages trained {old} LM iterations each, those here {steps}" if old != steps else ""
+    old_share = getattr(args, "resumed_adaptive", share)
+    if old_share != share:
+        its += (
+            f"; its stages chose {old_share:.0%} of each iteration's points where the residual is largest, those "
+            f"here {share:.0%}"
+        )
     return f", the stored run `{args.resume}` carried on (its stages, chain and wall time continued here{its})"
 
 

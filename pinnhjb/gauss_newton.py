@@ -143,6 +143,8 @@ def levenberg_marquardt(
     stall_windows: int = 2,
     desc: str = "LM",
     jacobian: Callable[..., tuple[Tensor, Tensor]] | None = None,
+    adaptive: float = 0.0,
+    candidates: int = 4,
 ) -> LMResult:
     """Minimise ``mean_i point_residual(theta, *batch_i)^2`` over fresh batches from ``sample(points)``.
 
@@ -163,6 +165,11 @@ def levenberg_marquardt(
     * ``desc``: the stage's label, for errors.
     * ``jacobian``: ``(theta, *batch) -> (r, J)``, the batch's residual vector and its Jacobian by a faster route
       than the default ``vmap(jacrev(point_residual))`` (it must agree with it: :mod:`pinnhjb.jacobian`).
+    * ``adaptive``: the share of each iteration's points chosen by their residual: of ``candidates`` times as many
+      fresh points, those with the largest ``abs(residual)`` at the current weights (residual-based adaptive
+      refinement); the rest are drawn as usual. The loss is then a mean over a batch weighted to where the
+      residual is large, above the mean over Omega. 0: every point drawn as usual.
+    * ``candidates``: the fresh points scored for each point chosen by its residual (an integer >= 2).
 
     The residual forms of :mod:`pinnhjb.residuals` give ``point_residual(flat)``, ``jacobian()`` and, for
     ``sample``, ``point_arguments(data, t)``. Returns an :class:`LMResult`.
@@ -176,11 +183,14 @@ def levenberg_marquardt(
         or window < 1
         or stall_windows < 1
         or any(b <= a for a, b in zip(schedule, schedule[1:]))
+        or not 0 <= adaptive < 1
+        or int(candidates) != candidates
+        or candidates < 2
     ):
         raise ValueError(
             f"need steps >= 0, points >= 1 (a schedule must grow), damping > 0, window >= 1, "
-            f"stall_windows >= 1 (damping finite); got {steps}, {points}, {damping}, {window}, "
-            f"{stall_windows}"
+            f"stall_windows >= 1 (damping finite), 0 <= adaptive < 1, an integer candidates >= 2; got {steps}, "
+            f"{points}, {damping}, {window}, {stall_windows}, {adaptive}, {candidates}"
         )
     start = time.perf_counter()
     theta = theta.detach().clone()
@@ -192,10 +202,18 @@ def levenberg_marquardt(
     log_losses: list[float] = []
     window_means: list[float] = []
     level = 0
+    residuals = None
     for _ in range(steps):
-        batch = sample(schedule[level])
+        size = schedule[level]
+        chosen = min(int(round(adaptive * size)), size - 1)
+        batch = sample(size - chosen)
         dims = (None,) + (0,) * len(batch)
-        residuals = vmap(point_residual, in_dims=dims)
+        residuals = residuals or vmap(point_residual, in_dims=dims)
+        if chosen:
+            pool = sample(int(candidates) * chosen)
+            with torch.no_grad():
+                top = torch.topk(residuals(theta, *pool).abs(), chosen).indices
+            batch = tuple(torch.cat([a, b[top]]) for a, b in zip(batch, pool))
         if jacobian is None:
             J = vmap(jacrev(point_residual), in_dims=dims)(theta, *batch)
             r = residuals(theta, *batch)

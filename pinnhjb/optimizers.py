@@ -190,6 +190,7 @@ class Phase:
 
     name: ClassVar[str] = ""
     needs_ansatz: ClassVar[bool] = False
+    added_later: ClassVar[tuple[str, ...]] = ()  # fields stored only when not at their default (:meth:`to_dict`)
     steps: int
 
     def run(self, objective: Objective, tracker: Tracker) -> PhaseOutcome:
@@ -201,8 +202,11 @@ class Phase:
         raise NotImplementedError
 
     def to_dict(self) -> dict:
-        """The phase as a dict: its ``name`` and its fields (:func:`phase_from_dict` inverts it)."""
-        return {"name": self.name, **asdict(self)}
+        """The phase as a dict: its ``name`` and its fields (:func:`phase_from_dict` inverts it). A field added
+        after checkpoints were first stored (the class's ``added_later``) is written only when it differs from its
+        default, so a phase stored before it reads back exactly as it was written."""
+        skip = {f.name for f in fields(self) if f.name in self.added_later and getattr(self, f.name) == f.default}
+        return {"name": self.name, **{k: v for k, v in asdict(self).items() if k not in skip}}
 
     def replace(self, **changes) -> Phase:
         """A copy with ``changes`` applied (and checked)."""
@@ -400,6 +404,9 @@ class LevenbergMarquardt(Phase):
     * ``min_progress``: the loss has stalled when it fell by less than this factor over the last ``stall_windows``
       windows of 10 iterations; None: never stall, run ``steps`` on ``points`` (``points_coarse`` unused).
     * ``stall_windows``: the windows of the stall rule.
+    * ``adaptive``: the share of each iteration's points chosen where the residual is largest, from ``candidates``
+      times as many fresh points (:func:`~pinnhjb.gauss_newton.levenberg_marquardt`); 0: all drawn as usual.
+    * ``candidates``: the fresh points scored per point chosen, an integer >= 2.
 
     Needs the ansatz (the flow residual is the whole loss). Its cost per iteration grows with the square of the
     number of weights: keep the network small (about 10^3 weights).
@@ -413,6 +420,9 @@ class LevenbergMarquardt(Phase):
     damping: float = 1e-3
     min_progress: float | None = 2.0
     stall_windows: int = 2
+    adaptive: float = 0.0
+    candidates: int = 4
+    added_later: ClassVar[tuple[str, ...]] = ("adaptive", "candidates")
 
     def __post_init__(self):
         raise_invalid(
@@ -424,6 +434,8 @@ class LevenbergMarquardt(Phase):
                 "damping": (real(self.damping, 0, low_open=True), "a finite number > 0"),
                 "min_progress": (real(self.min_progress, 1, none=True), "a finite number >= 1 or None"),
                 "stall_windows": (integer(self.stall_windows, 1), "an integer >= 1"),
+                "adaptive": (real(self.adaptive, 0) and self.adaptive < 1, "a number in [0, 1)"),
+                "candidates": (integer(self.candidates, 2), "an integer >= 2"),
             },
         )
         if self.points_coarse is not None and self.points_coarse >= self.points:
@@ -453,6 +465,8 @@ class LevenbergMarquardt(Phase):
             stall_windows=self.stall_windows,
             desc=objective.desc,
             jacobian=residual.jacobian(),
+            adaptive=self.adaptive,
+            candidates=self.candidates,
         )
         flat.set(result.theta)
         tracker.done += result.steps

@@ -450,6 +450,21 @@ class ReferenceGrid:
             np.savez(fh, metadata=np.array(json.dumps(meta)), **arrays)
         os.replace(tmp, path)
 
+    def value_error(self, solution, signed: bool = False) -> np.ndarray:
+        """The learned value's error at each converged point, per the largest reference value.
+
+        * ``solution``: anything with ``value(x)`` on (N, n) numpy states (a
+          :class:`~pinnhjb.solution.FiniteHorizonSolution`, a chain).
+        * ``signed``: ``(V - value) / max abs(value)``; otherwise its absolute value.
+
+        Returns an (N_converged,) array, in the order of ``points[converged]``. Its maximum is the benchmarks'
+        ``value_rel_error``.
+        """
+        ok = np.asarray(self.converged, dtype=bool)
+        v_ref = self.value[ok]
+        err = (np.asarray(solution.value(self.points[ok]), dtype=float) - v_ref) / np.max(np.abs(v_ref))
+        return err if signed else np.abs(err)
+
     @property
     def replay_error(self) -> float | None:
         """The reference's own check: max over the converged points of abs(replay_value - value) / abs(value);

@@ -95,6 +95,37 @@ def test_a_point_schedule_moves_on_at_each_stall_and_stops_at_the_last():
         levenberg_marquardt(exact, point_residual, sample, steps=3, points=(40, 20))
 
 
+def test_adaptive_points_are_the_candidates_with_the_largest_residuals():
+    """Fit a constant c to points x in [0, 1] (residual c - x): one undamped step lands on the batch's mean. From
+    c = 0, the points chosen by residual are the largest x among the candidates, so the mean moves up."""
+    gen = torch.Generator().manual_seed(0)
+    sizes = []
+
+    def sample(n):
+        sizes.append(n)
+        return (torch.rand(n, generator=gen, dtype=torch.float64),)
+
+    def point_residual(theta, x):
+        return theta[0] - x
+
+    start = torch.zeros(1, dtype=torch.float64)
+    plain = levenberg_marquardt(start, point_residual, sample, steps=1, points=4000, damping=1e-12)
+    assert sizes == [4000] and abs(plain.theta.item() - 0.5) < 0.02
+    sizes.clear()
+    # half drawn as usual (mean 1/2), half the top quarter of 4 x 2000 candidates (mean 7/8)
+    tilted = levenberg_marquardt(start, point_residual, sample, steps=1, points=4000, damping=1e-12, adaptive=0.5)
+    assert sizes == [2000, 8000] and abs(tilted.theta.item() - (0.5 + 0.875) / 2) < 0.02
+    for bad in ({"adaptive": 1.0}, {"adaptive": -0.1}, {"candidates": 1}, {"candidates": 2.5}):
+        with pytest.raises(ValueError, match="adaptive"):
+            levenberg_marquardt(start, point_residual, sample, steps=1, points=10, **bad)
+    with pytest.raises(ValueError, match=r"adaptive.*\[0, 1\)"):
+        ph.optimizers.LevenbergMarquardt(adaptive=1.0)
+    # stored only when set: a config written before the field reads back as it was
+    assert "adaptive" not in ph.optimizers.LevenbergMarquardt().to_dict()
+    phase = ph.optimizers.LevenbergMarquardt(adaptive=0.3, candidates=8)
+    assert ph.optimizers.phase_from_dict(phase.to_dict()) == phase
+
+
 def test_bad_arguments_and_non_finite_residuals_are_refused():
     A, b, point_residual, sample = _linear_problem(5, 3)
     theta = torch.zeros(3, dtype=torch.float64)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -138,6 +139,27 @@ def test_short_truncation_is_extended_or_flagged(quartic):
     assert grid.converged[4] and grid.value[4] == 0.0  # the origin (centre of the 3x3 grid)
     with pytest.raises(RuntimeError, match="did not converge"):
         reference_grid(quartic, points_per_dim=3, progress=False, t_inf=2.0, max_extensions=0, strict=True)
+
+
+def test_value_error_skips_failed_points_and_scales_by_the_largest_value(quartic):
+    grid = reference_grid(quartic, points_per_dim=3, progress=False)
+    ok = np.ones(9, dtype=bool)
+    ok[[2, 6]] = False  # two points as a failed solve leaves them
+    grid = dataclasses.replace(grid, converged=ok, value=np.where(ok, grid.value, np.nan))
+
+    class Shifted:  # V* plus a constant
+        def __init__(self, shift):
+            self.shift = shift
+
+        def value(self, x):
+            return quartic.value_star(torch.as_tensor(x)).numpy() + self.shift
+
+    top = np.abs(grid.value[ok]).max()
+    signed = grid.value_error(Shifted(-0.01), signed=True)
+    assert signed.shape == (ok.sum(),) and np.isfinite(signed).all()
+    # the converged points' V* to the BVP's accuracy, minus the shift, per the largest value
+    np.testing.assert_allclose(signed, -0.01 / top, atol=1e-5 / top)
+    np.testing.assert_array_equal(grid.value_error(Shifted(-0.01)), np.abs(signed))
 
 
 def test_seeded_points_match_exact_value_and_replay(quartic, tmp_path):
