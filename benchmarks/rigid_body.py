@@ -389,10 +389,13 @@ def _resumed_note(args, config: dict) -> str:
     its = f"; its stages trained {old} LM iterations each, those here {steps}" if old != steps else ""
     old_share = getattr(args, "resumed_adaptive", share)
     if old_share != share:
-        its += (
-            f"; its stages chose {old_share:.0%} of each iteration's points where the residual is largest, those "
-            f"here {share:.0%}"
-        )
+
+        def chose(a: float) -> str:
+            if not a:
+                return "drew each iteration's points as usual"
+            return f"chose {a:.0%} of each iteration's points where the residual is largest"
+
+        its += f"; its stages {chose(old_share)}, those here {chose(share)}"
     return f", the stored run `{args.resume}` carried on (its stages, chain and wall time continued here{its})"
 
 

@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
+import pinnhjb as ph
+
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
@@ -183,7 +185,7 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
     assert ", CPU; torch" in page and result["meta"]["machine"].endswith(", CPU")  # where it trained
     assert "| under 30 minutes on 2 CPU cores |" in page  # the time goal of the device it ran on
     assert result["meta"]["config"]["pool_size"] == 300 and ", 300 training states per stage (pool_size;" in page
-    for bad in (["--stall-windows", "0"], ["--pool-size", "0"]):  # refused before any run
+    for bad in (["--stall-windows", "0"], ["--pool-size", "0"], ["--adaptive", "1"]):  # refused before any run
         with pytest.raises(SystemExit):
             rigid_body.main([*args, *bad])
     # carried on from the stored run: its stage kept, one more trained with the same settings, one chain
@@ -223,12 +225,14 @@ def test_rigid_body_writes_reference_checkpoint_and_goals(tmp_path):
         with pytest.raises(SystemExit):
             rigid_body.main([*more, *bad])
     longer = [*args, "--max-horizon", "1.5", "--resume", str(tmp_path / "straight"), "--resume-chain", str(chain)]
-    assert rigid_body.main([*longer, "--lm-steps", "7", "--out", str(tmp_path / "longer")]) == 0  # longer stages
-    rows = json.loads((tmp_path / "longer" / "rigid_body.json").read_text())["infinite"]["stages"]
-    assert [r["iterations"] for r in rows] == [5, 5, 7]
-    assert (
-        "its stages trained 5 LM iterations each, those here 7)" in (tmp_path / "longer" / "rigid_body.md").read_text()
-    )
+    longer += ["--lm-steps", "7", "--adaptive", "0.5", "--out", str(tmp_path / "longer")]
+    assert rigid_body.main(longer) == 0  # longer stages, half of each iteration's points chosen by their residual
+    run = json.loads((tmp_path / "longer" / "rigid_body.json").read_text())
+    assert [r["iterations"] for r in run["infinite"]["stages"]] == [5, 5, 7]
+    assert ph.TrainConfig.from_dict(run["meta"]["config"]).phase("lm").adaptive == 0.5
+    page = (tmp_path / "longer" / "rigid_body.md").read_text()
+    assert "5 LM iterations each, those here 7; its stages drew each iteration's points as usual, those here " in page
+    assert "(50% of each iteration's points chosen where the residual is largest; no stall rule: 7 " in page
 
 
 def test_time_goal_follows_the_device():
