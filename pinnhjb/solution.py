@@ -13,16 +13,18 @@ changed result is a new one, made with ``dataclasses.replace``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import tempfile
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from . import metrics as _metrics
-from .pinn import FiniteHorizonValue, SteadyStateValue, gradient
+from .pinn import CallableTerminalCost, FiniteHorizonValue, SteadyStateValue, gradient
 from .residuals import SteadyStateHJB
-from .training import TrainHistory
+from .training import TrainHistory, resolve_device
 
 if TYPE_CHECKING:
     from .config import TrainConfig
@@ -46,6 +48,29 @@ class _ValueSolution:
     @property
     def device(self) -> torch.device:
         return next(self._models()[0].parameters()).device
+
+    def to(self, device):
+        """This solution with its networks on ``device``: itself when they are there already, else a copy made by a
+        checkpoint round trip (:func:`pinnhjb.save`, then :func:`pinnhjb.load` onto ``device``), so its weights,
+        training histories and metrics are the ones a checkpoint stores; ``tol``, ``interrupted`` and
+        ``provenance`` are carried over.
+
+        * ``device``: a torch device or its name, ``"cpu"`` or ``"cuda"`` (None: CUDA when present); CUDA asked for
+          where there is none raises a RuntimeError before anything is copied.
+        """
+        from . import storage  # storage builds solutions: imported here, not at the top
+
+        dev, here = resolve_device(device), self.device
+        if dev.type == here.type and dev.index in (None, here.index):
+            return self
+        first = self._models()[0]
+        terminal = getattr(first, "terminal_cost", None)
+        named = terminal if isinstance(terminal, CallableTerminalCost) else None
+        with tempfile.TemporaryDirectory() as tmp:
+            path = storage.save(self, Path(tmp) / "solution.pt")
+            moved = storage.load(path, system=self.system, device=dev, terminal_cost=named)
+        kept = {k: getattr(self, k) for k in ("tol", "interrupted", "provenance") if hasattr(self, k)}
+        return replace(moved, **kept)
 
     def _models(self):  # pragma: no cover - abstract
         raise NotImplementedError

@@ -75,6 +75,10 @@ def test_extension_and_checkpoint_from_cuda_to_cpu(tmp_path, x_test):
     assert back.device.type == "cpu"
     assert np.allclose(back.value(x_test), sol.value(x_test), rtol=1e-12, atol=1e-12)
     assert back.evaluate(11)["E"] == pytest.approx(sol.evaluate(11)["E"], rel=1e-9)
+    moved = sol.to("cpu")  # the same round trip, in one call
+    assert moved.device.type == "cpu" and moved.to("cpu") is moved and sol.device.type == "cuda"
+    assert np.allclose(moved.value(x_test), sol.value(x_test), rtol=1e-12, atol=1e-12)
+    assert moved.to("cuda").device.type == "cuda"
 
 
 def test_rigid_body_recipe_on_cuda_matches_the_cpu():

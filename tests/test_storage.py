@@ -251,6 +251,17 @@ def test_save_rejects_non_solution_with_type_error(tmp_path):
         ph.save("not a solution", tmp_path / "x.pt")
 
 
+def test_to_the_device_it_is_on_is_itself(two_stage, steady):
+    for sol in (two_stage, steady):
+        assert sol.to("cpu") is sol and sol.to(torch.device("cpu")) is sol
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+def test_to_cuda_without_cuda_is_refused(two_stage):
+    with pytest.raises(RuntimeError, match="CUDA is not available"):
+        two_stage.to("cuda")
+
+
 def test_named_callable_terminal_cost_is_saved_by_name_and_must_be_passed_back(tmp_path, config):
     system = user_system()
     phi = CallableTerminalCost(lambda x: 0.5 * (x**2).sum(-1), name="half |x|^2")
