@@ -51,9 +51,9 @@ class _ValueSolution:
 
     def to(self, device):
         """This solution with its networks on ``device``: itself when they are there already, else a copy made by a
-        checkpoint round trip (:func:`pinnhjb.save`, then :func:`pinnhjb.load` onto ``device``), so its weights,
-        training histories and metrics are the ones a checkpoint stores; ``tol``, ``interrupted`` and
-        ``provenance`` are carried over.
+        checkpoint round trip (:func:`~pinnhjb.storage.save`, then :func:`~pinnhjb.storage.load` onto ``device``),
+        so its weights, training histories and metrics are the ones a checkpoint stores; ``tol``, ``interrupted``
+        and ``provenance`` are carried over.
 
         * ``device``: a torch device or its name, ``"cpu"`` or ``"cuda"`` (None: CUDA when present); CUDA asked for
           where there is none raises a RuntimeError before anything is copied.
