@@ -652,7 +652,8 @@ def test_site_built_and_has_explorers():
 
 
 def test_site_has_what_readers_expect():
-    """A repository link on every page, a download of each chapter's notebook, no link to an empty index."""
+    """A repository link on every page, a download of each chapter's notebook, no link to an empty index, and
+    every image described for a reader who cannot see it (an alt text that is not its file name)."""
     if not (SITE / "index.html").is_file():
         _missing(f"no built site at {SITE} (run: bash scripts/build_book.sh)")
     import yaml
@@ -667,6 +668,11 @@ def test_site_has_what_readers_expect():
         rel, html = _rel(p), p.read_text(encoding="utf-8")
         if f'href="{repo}"' not in html:
             problems.append(f"{rel}: no link to the repository {repo}")
+        for img in re.findall(r"<img\b[^>]*>", html):
+            alt = re.search(r'\balt="([^"]*)"', img)
+            if not alt or not alt.group(1).strip() or re.search(r"\.(png|svg|jpe?g|gif)$", alt.group(1)):
+                src = re.search(r'\bsrc="([^"]{0,60})', img)
+                problems.append(f"{rel}: an image without alt text ({src.group(1) if src else img[:60]})")
         if (not genindex.is_file() or index_empty) and re.search(r'href="[^"]*genindex\.html"', html):
             problems.append(f"{rel}: links to an index page that is {'empty' if index_empty else 'missing'}")
         if rel.startswith("notebooks/"):
