@@ -126,28 +126,27 @@ def lm_settings(args) -> dict:
 
 
 def lm_rule(config: dict) -> str:
-    """How the stored ``config``'s LM phase stops, as a clause for a results page ("" for the recipe's rule). The
-    points per iteration are not named: the width rule sets them per dimension."""
+    """How the stored ``config``'s LM phase stops (and, when set, its share of points chosen by residual), as a
+    clause for a results page ("" for the recipe's rule). The points per iteration are not named: the width rule
+    sets them per dimension."""
     lm = next(p for p in config["phases"] if p["name"] == "lm")
+    parts = []
     if lm.get("adaptive"):
-        plain = {k: v for k, v in lm.items() if k not in ("adaptive", "candidates")}
-        chosen = f"{lm['adaptive']:.0%} of each iteration's points chosen where the residual is largest"
-        rule = lm_rule({**config, "phases": [plain]})
-        return f" ({chosen}{'; ' + rule[2:] if rule else ')'}"
-    if lm.get("min_progress") is None:
-        return f" (no stall rule: {lm['steps']} iterations per stage, on the last level's points throughout)"
+        parts.append(f"{lm['adaptive']:.0%} of each iteration's points chosen where the residual is largest")
     recipe = LevenbergMarquardt()
-    if (lm["min_progress"], lm.get("stall_windows"), lm["steps"]) == (
+    if lm.get("min_progress") is None:
+        parts.append(f"no stall rule: {lm['steps']} iterations per stage, on the last level's points throughout")
+    elif (lm["min_progress"], lm.get("stall_windows"), lm["steps"]) != (
         recipe.min_progress,
         recipe.stall_windows,
         recipe.steps,
-    ) and lm.get("points_coarse") is not None:
-        return ""
-    levels = "" if lm.get("points_coarse") else "the last level's points throughout; "
-    return (
-        f" ({levels}a stage stops once its loss fell by less than {lm['min_progress']:g}x over "
-        f"{lm['stall_windows']} windows of 10 iterations, or after {lm['steps']})"
-    )
+    ) or lm.get("points_coarse") is None:
+        levels = "" if lm.get("points_coarse") else "the last level's points throughout; "
+        parts.append(
+            f"{levels}a stage stops once its loss fell by less than {lm['min_progress']:g}x over "
+            f"{lm['stall_windows']} windows of 10 iterations, or after {lm['steps']}"
+        )
+    return f" ({'; '.join(parts)})" if parts else ""
 
 
 def add_start_arguments(parser: argparse.ArgumentParser, note: str = "") -> None:

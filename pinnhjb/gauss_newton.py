@@ -208,7 +208,8 @@ def levenberg_marquardt(
         chosen = min(int(round(adaptive * size)), size - 1)
         batch = sample(size - chosen)
         dims = (None,) + (0,) * len(batch)
-        residuals = residuals or vmap(point_residual, in_dims=dims)
+        if residuals is None:  # the batch's layout is known from the first sample
+            residuals = vmap(point_residual, in_dims=dims)
         if chosen:
             pool = sample(int(candidates) * chosen)
             with torch.no_grad():

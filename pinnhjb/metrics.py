@@ -196,9 +196,9 @@ def residual_spread(
     * ``points_per_dim``: as in :func:`evaluation_states`.
     * ``top``: the fraction of the states, those of the largest residuals, whose share of the sum is reported.
 
-    Returns a dict: ``scaled`` (N,) numpy array, ``abs(E_e)`` / RMS of Q at each state; ``max`` and ``q99``, its
-    largest value and its 99th percentile; ``top_share``, the share of the sum of squares from the states at or
-    above its ``1 - top`` quantile.
+    Returns a dict: ``scaled`` (N,) numpy array, ``abs(E_e)`` / RMS of Q at each state; ``q_rms``, that RMS of Q
+    (to scale other residuals alike); ``max`` and ``q99``, its largest value and its 99th percentile;
+    ``top_share``, the share of the sum of squares from the states at or above its ``1 - top`` quantile.
     """
     if not 0 < top < 1:
         raise ValueError(f"top must be in (0, 1); got {top}")
@@ -210,6 +210,7 @@ def residual_spread(
     sq = r**2
     return {
         "scaled": r,
+        "q_rms": q_rms,
         "max": float(r.max()),
         "q99": float(np.quantile(r, 0.99)),
         "top_share": float(sq[r >= np.quantile(r, 1 - top)].sum() / sq.sum()),

@@ -682,6 +682,7 @@ def test_E_in_high_dimension_is_monte_carlo_with_its_standard_error():
     spread = metrics.residual_spread(sys_, field)
     assert np.mean(spread["scaled"] ** 2) == pytest.approx(out["E_flow"] / out["E_zero"], rel=1e-12)
     assert spread["max"] == spread["scaled"].max() > spread["q99"] > 0
+    assert spread["q_rms"] ** 2 == pytest.approx(out["E_zero"], rel=1e-12)  # V = 0 leaves Q as its residual
     assert 1e-3 < spread["top_share"] < 1  # a thousandth of the states: more than their count's share of E
     with pytest.raises(ValueError, match="top must be in"):
         metrics.residual_spread(sys_, field, top=1.0)
