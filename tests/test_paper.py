@@ -192,3 +192,32 @@ def test_the_core_knows_nothing_of_the_paper():
                 n.split(".")[-1] in ("paper", "reproduce", "theorem3") or n.startswith("paper") for n in names
             ), (path.name, names)
     assert not (ROOT / "pinnhjb" / "reproduce.py").exists() and not (ROOT / "pinnhjb" / "theorem3.py").exists()
+
+
+def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
+    """The loaders chapters 8 and 9 call: a stored run (main, a repeat, a GPU run) and the reference with the most
+    states; what is missing is a FileNotFoundError naming where it was looked for."""
+    out = tmp_path / "artifacts"
+    results = tmp_path / "benchmarks" / "results"
+    (results / "repeats" / "run-a").mkdir(parents=True)
+    (results / "cuda_nd" / "run-b").mkdir(parents=True)
+    (results / "rigid_body.json").write_text(json.dumps({"which": "main"}))
+    (results / "repeats" / "run-a" / "dimension.json").write_text(json.dumps({"which": "repeat"}))
+    (results / "cuda_nd" / "run-b" / "rigid_body.json").write_text(json.dumps({"which": "gpu"}))
+    assert paper.results_dir(out) == results
+    assert paper.benchmark_run(out=out) == {"which": "main"}
+    assert paper.benchmark_run("run-a", "dimension", out=out) == {"which": "repeat"}
+    assert paper.benchmark_run("run-b", folder="cuda_nd", out=out) == {"which": "gpu"}
+    with pytest.raises(FileNotFoundError, match="run-a/rigid_body.json"):
+        paper.benchmark_run("run-a", out=out)
+    with pytest.raises(FileNotFoundError, match=r"reference/rigid_body_inf_\*\.npz"):
+        paper.benchmark_reference("rigid_body", out=out)
+    stored = paper.load_reference("pendulum_one_stage", paper.INF, ARTIFACTS)
+    (out / "reference").mkdir(parents=True)
+    for points in (9, 10):  # 10 > 9 as numbers, not as strings
+        stored.save(out / "reference" / f"rigid_body_inf_{points}.npz")
+    stored.save(out / "reference" / "rigid_body_T20_11.npz")
+    (out / "reference" / "rigid_body_inf_9.npz").write_bytes(b"not a grid")  # never read: the larger one is
+    got = paper.benchmark_reference("rigid_body", out=out)
+    assert np.array_equal(got.value, stored.value, equal_nan=True)
+    assert paper.benchmark_reference("rigid_body", 20.0, out=out).horizon == stored.horizon

@@ -13,12 +13,15 @@ import importlib as _importlib
 
 from .artifacts import (
     artifacts_dir,
+    benchmark_reference,
+    benchmark_run,
     checkpoint_path,
     load_case,
     load_reference,
     load_results,
     reference_path,
     reference_residual,
+    results_dir,
     stage_metric,
     stored_seeds,
 )
@@ -40,6 +43,9 @@ __all__ = [
     "reference_residual",
     "load_reference",
     "load_results",
+    "results_dir",
+    "benchmark_run",
+    "benchmark_reference",
 ]
 
 # Submodules imported on first use (``paper.reproduce`` after ``from pinnhjb import paper``); theorem3 is not

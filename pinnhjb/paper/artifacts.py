@@ -1,5 +1,5 @@
 """Where the reproduction's artifacts live, and the loaders the chapters call: stored solutions per case and
-seed, the reference grids, the results table."""
+seed, the reference grids, the results table, and the benchmarks' stored runs that chapters 8 and 9 read."""
 
 from __future__ import annotations
 
@@ -22,6 +22,9 @@ __all__ = [
     "reference_residual",
     "load_reference",
     "load_results",
+    "results_dir",
+    "benchmark_run",
+    "benchmark_reference",
 ]
 
 #: The artifacts folder, relative to the working directory.
@@ -143,3 +146,50 @@ def load_results(out: Path | None = None) -> dict:
     * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
     """
     return json.loads((Path(out or artifacts_dir()) / "results" / "reproduce.json").read_text())
+
+
+def results_dir(out: Path | None = None) -> Path:
+    """Where the benchmarks write their results: ``benchmarks/results/`` beside the artifacts folder.
+
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    """
+    return Path(out or artifacts_dir()).parent / "benchmarks" / "results"
+
+
+def benchmark_run(run: str | None = None, name: str = "rigid_body", folder: str = "repeats", out=None) -> dict:
+    """A benchmark's stored run, as its script wrote it (``meta`` and its results).
+
+    * ``run``: the run's folder under ``folder`` (its ``--out``); None: the benchmark's main run,
+      ``benchmarks/results/<name>.json``.
+    * ``name``: the benchmark: ``"rigid_body"``, ``"dimension"``, ...
+    * ``folder``: where ``run`` lies under :func:`results_dir`: ``"repeats"``, or ``"cuda_nd"`` for the runs of
+      ``benchmarks/cuda.sh``.
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+
+    A run that is not stored is a FileNotFoundError naming the file looked for.
+    """
+    base = results_dir(out)
+    path = base / f"{name}.json" if run is None else base / folder / run / f"{name}.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"no stored benchmark run at {path}")
+    return json.loads(path.read_text())
+
+
+def benchmark_reference(system: str, horizon: float = INF, out: Path | None = None):
+    """The reference grid a benchmark stored for ``system`` (``<out>/reference/<system>_<inf|T..>_<points>.npz``),
+    the one with the most states when there are several.
+
+    * ``system``: the name the benchmark stored it under, e.g. ``"rigid_body"``.
+    * ``horizon``: T, or ``inf`` for V*.
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+
+    None stored is a FileNotFoundError naming the pattern looked for.
+    """
+    from ..reference import ReferenceGrid
+
+    tag = "inf" if horizon == INF else f"T{horizon:g}"
+    folder = Path(out or artifacts_dir()) / "reference"
+    files = list(folder.glob(f"{system}_{tag}_*.npz"))
+    if not files:
+        raise FileNotFoundError(f"no stored reference {folder / f'{system}_{tag}_*.npz'}")
+    return ReferenceGrid.load(max(files, key=lambda p: int(p.stem.rsplit("_", 1)[1])))
