@@ -156,7 +156,9 @@ def results_dir(out: Path | None = None) -> Path:
     return Path(out or artifacts_dir()).parent / "benchmarks" / "results"
 
 
-def benchmark_run(run: str | None = None, name: str = "rigid_body", folder: str = "repeats", out=None) -> dict:
+def benchmark_run(
+    run: str | None = None, name: str = "rigid_body", folder: str = "repeats", out: Path | None = None
+) -> dict:
     """A benchmark's stored run, as its script wrote it (``meta`` and its results).
 
     * ``run``: the run's folder under ``folder`` (its ``--out``); None: the benchmark's main run,
