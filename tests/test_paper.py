@@ -202,12 +202,18 @@ def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
     (results / "repeats" / "run-a").mkdir(parents=True)
     (results / "cuda_nd" / "run-b").mkdir(parents=True)
     (results / "rigid_body.json").write_text(json.dumps({"which": "main"}))
+    (results / "dimension.json").write_text(json.dumps({"which": "main dimension"}))
     (results / "repeats" / "run-a" / "dimension.json").write_text(json.dumps({"which": "repeat"}))
     (results / "cuda_nd" / "run-b" / "rigid_body.json").write_text(json.dumps({"which": "gpu"}))
     assert paper.results_dir(out) == results
     assert paper.benchmark_run(out=out) == {"which": "main"}
     assert paper.benchmark_run("run-a", "dimension", out=out) == {"which": "repeat"}
     assert paper.benchmark_run("run-b", folder="cuda_nd", out=out) == {"which": "gpu"}
+    assert paper.benchmark_runs(out=out) == {"main run": {"which": "main"}, "cuda_nd/run-b": {"which": "gpu"}}
+    assert paper.benchmark_runs("dimension", out=out) == {
+        "main run": {"which": "main dimension"},
+        "repeats/run-a": {"which": "repeat"},
+    }
     with pytest.raises(FileNotFoundError, match="run-a/rigid_body.json"):
         paper.benchmark_run("run-a", out=out)
     with pytest.raises(FileNotFoundError, match=r"reference/rigid_body_inf_\*\.npz"):

@@ -15,6 +15,7 @@ from .artifacts import (
     artifacts_dir,
     benchmark_reference,
     benchmark_run,
+    benchmark_runs,
     checkpoint_path,
     load_case,
     load_reference,
@@ -45,6 +46,7 @@ __all__ = [
     "load_results",
     "results_dir",
     "benchmark_run",
+    "benchmark_runs",
     "benchmark_reference",
 ]
 

@@ -24,6 +24,7 @@ __all__ = [
     "load_results",
     "results_dir",
     "benchmark_run",
+    "benchmark_runs",
     "benchmark_reference",
 ]
 
@@ -175,6 +176,20 @@ def benchmark_run(
     if not path.is_file():
         raise FileNotFoundError(f"no stored benchmark run at {path}")
     return json.loads(path.read_text())
+
+
+def benchmark_runs(name: str = "rigid_body", out: Path | None = None) -> dict[str, dict]:
+    """Every stored run of a benchmark, by where it lies: ``"main run"``, then ``"<folder>/<run>"`` for each
+    ``<folder>/<run>/<name>.json`` under :func:`results_dir` (``repeats/...``, ``cuda_nd/...``), in name order.
+
+    * ``name``: the benchmark: ``"rigid_body"``, ``"dimension"``, ...
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    """
+    runs = {"main run": benchmark_run(name=name, out=out)}
+    for path in sorted(results_dir(out).glob(f"*/*/{name}.json")):
+        folder, run = path.parent.parent.name, path.parent.name
+        runs[f"{folder}/{run}"] = benchmark_run(run, name, folder=folder, out=out)
+    return runs
 
 
 def benchmark_reference(system: str, horizon: float = INF, out: Path | None = None):
