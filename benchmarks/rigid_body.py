@@ -57,6 +57,7 @@ from _common import (  # benchmarks/_common.py, a sibling
 )
 
 import pinnhjb as ph
+from pinnhjb.paper import benchmark_reference_path
 from pinnhjb.reference import ReferenceGrid, reference_points
 from pinnhjb.storage import provenance
 
@@ -73,8 +74,7 @@ POOL = ph.TrainConfig().pool_size  # the recipe's training states per stage
 def reference(system, horizon: float, points: int, seed: int, progress: bool, artifacts: Path) -> ReferenceGrid:
     """The stored reference at ``points`` seeded states (infinite horizon, or T = 20 with their terminal cost);
     computed and saved when missing."""
-    tag = "inf" if math.isinf(horizon) else f"T{horizon:g}"
-    path = artifacts / "reference" / f"rigid_body_{tag}_{points}.npz"
+    path = benchmark_reference_path("rigid_body", horizon, points, artifacts)
     if path.exists():
         ref = ReferenceGrid.load(path)
         if ref.info.get("seed") == seed:

@@ -53,7 +53,9 @@ class _ValueSolution:
         """This solution with its networks on ``device``: itself when they are there already, else a copy made by a
         checkpoint round trip (:func:`~pinnhjb.storage.save`, then :func:`~pinnhjb.storage.load` onto ``device``),
         so its weights, training histories and metrics are the ones a checkpoint stores; ``tol``, ``interrupted``
-        and ``provenance`` are carried over.
+        and ``provenance`` are carried over, and so is a first terminal cost given as a Python function
+        (:class:`~pinnhjb.pinn.CallableTerminalCost`, named or not: the same function, which must accept states
+        on ``device``).
 
         * ``device``: a torch device or its name, ``"cpu"`` or ``"cuda"`` (None: CUDA when present); CUDA asked for
           where there is none raises a RuntimeError before anything is copied.
@@ -63,13 +65,18 @@ class _ValueSolution:
         dev, here = resolve_device(device), self.device
         if dev.type == here.type and dev.index in (None, here.index):
             return self
-        first = self._models()[0]
-        terminal = getattr(first, "terminal_cost", None)
-        named = terminal if isinstance(terminal, CallableTerminalCost) else None
+        terminal = getattr(self._models()[0], "terminal_cost", None)
+        given = terminal if isinstance(terminal, CallableTerminalCost) else None
+        source = self
+        if given is not None and given.name is None:  # code is not stored: named for the round trip only
+            given = CallableTerminalCost(terminal.fn, name="unnamed callable, moved")
+            source = replace(self, terminal_spec=given.spec())
         with tempfile.TemporaryDirectory() as tmp:
-            path = storage.save(self, Path(tmp) / "solution.pt")
-            moved = storage.load(path, system=self.system, device=dev, terminal_cost=named)
-        kept = {k: getattr(self, k) for k in ("tol", "interrupted", "provenance") if hasattr(self, k)}
+            path = storage.save(source, Path(tmp) / "solution.pt")
+            moved = storage.load(path, system=self.system, device=dev, terminal_cost=given)
+        if source is not self:
+            given.name = None  # unnamed again, as it was: the moved solution is no more savable than this one
+        kept = {k: getattr(self, k) for k in ("tol", "interrupted", "provenance", "terminal_spec") if hasattr(self, k)}
         return replace(moved, **kept)
 
     def _models(self):  # pragma: no cover - abstract

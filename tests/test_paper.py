@@ -214,6 +214,21 @@ def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
         "main run": {"which": "main dimension"},
         "repeats/run-a": {"which": "repeat"},
     }
+    record = {
+        "rows": [  # the last measured row of each (system, n) and recipe
+            {"system": "lq_ladder", "n": 4, "value_rel_error": 1.0},
+            {"system": "lq_ladder", "n": 4, "recipe": "default", "value_rel_error": 2.0},
+            {"system": "lq_ladder", "n": 4, "recipe": "default", "value_rel_error": None},
+            {"system": "lq_ladder", "n": 4, "recipe": "adam_lbfgs", "value_rel_error": 3.0},
+            {"system": "converse", "n": 4, "recipe": "default", "value_rel_error": 4.0},
+        ]
+    }
+    assert {k: r["value_rel_error"] for k, r in paper.dimension_rows(record).items()} == {
+        ("lq_ladder", 4): 2.0,
+        ("converse", 4): 4.0,
+    }
+    assert list(paper.dimension_rows(record, "adam_lbfgs")) == [("lq_ladder", 4)]
+    assert paper.dimension_rows(record, "deepxde") == {}
     with pytest.raises(FileNotFoundError, match="run-a/rigid_body.json"):
         paper.benchmark_run("run-a", out=out)
     with pytest.raises(FileNotFoundError, match=r"reference/rigid_body_inf_\*\.npz"):
@@ -221,8 +236,9 @@ def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
     stored = paper.load_reference("pendulum_one_stage", paper.INF, ARTIFACTS)
     (out / "reference").mkdir(parents=True)
     for points in (9, 10):  # 10 > 9 as numbers, not as strings
-        stored.save(out / "reference" / f"rigid_body_inf_{points}.npz")
-    stored.save(out / "reference" / "rigid_body_T20_11.npz")
+        stored.save(paper.benchmark_reference_path("rigid_body", paper.INF, points, out))
+    stored.save(paper.benchmark_reference_path("rigid_body", 20.0, 11, out))
+    assert (out / "reference" / "rigid_body_T20_11.npz").is_file()  # the name benchmarks/rigid_body.py writes
     (out / "reference" / "rigid_body_inf_9.npz").write_bytes(b"not a grid")  # never read: the larger one is
     got = paper.benchmark_reference("rigid_body", out=out)
     assert np.array_equal(got.value, stored.value, equal_nan=True)

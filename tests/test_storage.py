@@ -262,6 +262,26 @@ def test_to_cuda_without_cuda_is_refused(two_stage):
         two_stage.to("cuda")
 
 
+@pytest.mark.parametrize("name", [None, "half |x|^2"])
+def test_to_another_device_carries_a_callable_terminal_cost(tmp_path, config, name):
+    """``Solution.to`` is a checkpoint round trip; a first terminal cost that is code goes along as the same
+    function, and one without a name stays unnamed (so no more savable than before). The round trip is forced
+    on the CPU by naming its device index."""
+    system = user_system()
+    phi = CallableTerminalCost(lambda x: 0.5 * (x**2).sum(-1), name=name)
+    torch.manual_seed(0)
+    model = FiniteHorizonValue(2, 1.0, system.train_domain, phi, width=config.width, depth=config.depth).float()
+    sol = FiniteHorizonSolution(system, config, [Stage(model, 0.0, TrainHistory(), seed=0)], phi.spec())
+    moved = sol.to(torch.device("cpu", 0))
+    assert moved is not sol and moved.terminal_spec == sol.terminal_spec == phi.spec() and phi.name == name
+    x = np.random.default_rng(0).uniform(-1, 1, (10, 2))
+    np.testing.assert_array_equal(moved.value(x, 0.3), sol.value(x, 0.3))
+    np.testing.assert_allclose(moved.value(x, 1.0), 0.5 * (x**2).sum(-1), rtol=1e-6)  # phi at T, in float32
+    if name is None:
+        with pytest.raises(CheckpointError, match="cannot be saved"):
+            ph.save(moved, tmp_path / "moved.pt")
+
+
 def test_named_callable_terminal_cost_is_saved_by_name_and_must_be_passed_back(tmp_path, config):
     system = user_system()
     phi = CallableTerminalCost(lambda x: 0.5 * (x**2).sum(-1), name="half |x|^2")

@@ -14,9 +14,11 @@ import importlib as _importlib
 from .artifacts import (
     artifacts_dir,
     benchmark_reference,
+    benchmark_reference_path,
     benchmark_run,
     benchmark_runs,
     checkpoint_path,
+    dimension_rows,
     load_case,
     load_reference,
     load_results,
@@ -47,7 +49,9 @@ __all__ = [
     "results_dir",
     "benchmark_run",
     "benchmark_runs",
+    "dimension_rows",
     "benchmark_reference",
+    "benchmark_reference_path",
 ]
 
 # Submodules imported on first use (``paper.reproduce`` after ``from pinnhjb import paper``); theorem3 is not

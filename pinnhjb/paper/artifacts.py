@@ -192,6 +192,34 @@ def benchmark_runs(name: str = "rigid_body", out: Path | None = None) -> dict[st
     return runs
 
 
+def dimension_rows(record: dict, recipe: str = "default") -> dict[tuple[str, int], dict]:
+    """A ``benchmarks/dimension.py`` run's measured rows of one recipe, by ``(system, n)``: where a run holds
+    several rows of the same system and n, the last one; rows without a measured error (a recipe that did not
+    run) are left out.
+
+    * ``record``: the run, as :func:`benchmark_run` reads it (``name="dimension"``).
+    * ``recipe``: ``"default"``, ``"adam_lbfgs"`` or ``"deepxde"`` (rows stored before recipes were named are
+      ``"default"``).
+    """
+    return {
+        (r["system"], r["n"]): r
+        for r in record["rows"]
+        if r.get("recipe", "default") == recipe and r.get("value_rel_error") is not None
+    }
+
+
+def benchmark_reference_path(system: str, horizon: float, points: int | str, out: Path | None = None) -> Path:
+    """Where a benchmark stores its reference grid for ``system``: ``<out>/reference/<system>_<inf|T..>_<points>.npz``.
+
+    * ``system``: the name the benchmark stores it under, e.g. ``"rigid_body"``.
+    * ``horizon``: T, or ``inf`` for V*.
+    * ``points``: the number of seeded states (``"*"``: the glob pattern for any number).
+    * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
+    """
+    tag = "inf" if horizon == INF else f"T{horizon:g}"
+    return Path(out or artifacts_dir()) / "reference" / f"{system}_{tag}_{points}.npz"
+
+
 def benchmark_reference(system: str, horizon: float = INF, out: Path | None = None):
     """The reference grid a benchmark stored for ``system`` (``<out>/reference/<system>_<inf|T..>_<points>.npz``),
     the one with the most states when there are several.
@@ -204,9 +232,8 @@ def benchmark_reference(system: str, horizon: float = INF, out: Path | None = No
     """
     from ..reference import ReferenceGrid
 
-    tag = "inf" if horizon == INF else f"T{horizon:g}"
-    folder = Path(out or artifacts_dir()) / "reference"
-    files = list(folder.glob(f"{system}_{tag}_*.npz"))
+    pattern = benchmark_reference_path(system, horizon, "*", out)
+    files = list(pattern.parent.glob(pattern.name))
     if not files:
-        raise FileNotFoundError(f"no stored reference {folder / f'{system}_{tag}_*.npz'}")
+        raise FileNotFoundError(f"no stored reference {pattern}")
     return ReferenceGrid.load(max(files, key=lambda p: int(p.stem.rsplit("_", 1)[1])))
