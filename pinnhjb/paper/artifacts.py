@@ -25,7 +25,9 @@ __all__ = [
     "results_dir",
     "benchmark_run",
     "benchmark_runs",
+    "dimension_rows",
     "benchmark_reference",
+    "benchmark_reference_path",
 ]
 
 #: The artifacts folder, relative to the working directory.
