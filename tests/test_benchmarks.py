@@ -173,3 +173,17 @@ def test_timed_measure_is_the_solvers_public_evaluation_hook(speed):
         for v in vars(speed).values()
         if v is not ph.FiniteHorizonSolver
     )
+
+
+def test_results_index_is_generated():
+    """``benchmarks/results/index.md`` is what ``benchmarks/index.py`` makes of the stored runs, so none of its
+    numbers is typed; a stored run added without rewriting the page fails here."""
+    spec = importlib.util.spec_from_file_location("index_benchmark", SPEED.parent / "index.py")
+    index = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(index)
+    page = index.render()
+    assert (SPEED.parent / "results" / "index.md").read_text() == page
+    assert "| `repeats/ladder-n6-best-start` |" in page and "| `main run` |" in page
+    assert index.main(["--check"]) == 0
+    meta = {"command": "benchmarks/dimension.py --ladder  --note two words --out /tmp/x --no-progress --seed 1"}
+    assert index.command(meta) == 'benchmarks/dimension.py --ladder "" --seed 1'
