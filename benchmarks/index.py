@@ -142,6 +142,27 @@ def _other(name: str, runs: dict[str, dict]) -> list[str]:
     return lines
 
 
+def _goals(results: Path) -> list[str]:
+    """Issue #18's goals against these runs (:func:`pinnhjb.paper.dimension_goals`), as chapter 8 tabulates them."""
+    from pinnhjb.paper import dimension_goals
+
+    try:
+        goals = dimension_goals(results.parent.parent / "artifacts")
+    except (FileNotFoundError, KeyError):  # a results folder without the main runs
+        return []
+    lines = [
+        "",
+        "## Issue #18's goals",
+        "",
+        "The main run's number, and the closest of every stored run (lowest over them; chapter 8's goals table):",
+        "",
+        "| goal | main run | closest stored run | met | that run |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [f"| {g.text} | {g.show('main')} | {g.show()} | {'yes' if g.met else 'no'} | `{g.run}` |" for g in goals]
+    return lines
+
+
 def render(results: Path = RESULTS) -> str:
     """The page, from every ``<benchmark>.json`` under ``results`` (see the module docstring)."""
     out = [
@@ -154,6 +175,7 @@ def render(results: Path = RESULTS) -> str:
         "the stages it resumed in its wall time, trained where that run was. What the runs show: chapters 8 and 9",
         "of the book and `benchmarks/README.md`.",
     ]
+    out += _goals(results)
     for name in BENCHMARKS:
         runs = _runs(name, results)
         if not runs:

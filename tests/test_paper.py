@@ -243,3 +243,48 @@ def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
     got = paper.benchmark_reference("rigid_body", out=out)
     assert np.array_equal(got.value, stored.value, equal_nan=True)
     assert paper.benchmark_reference("rigid_body", 20.0, out=out).horizon == stored.horizon
+
+
+def _rigid(value, grad, wall, device="cpu", settled=100):
+    stage = {"T": 16.0, "E_ratio": 1e-6, "value_rel_error": value, "grad_mean_rel_error": grad}
+    loop = {"states": 100, "settled": settled, "cost_ratio_max": 1.0002}
+    return {"meta": {"args": {"device": device}}, "infinite": {"stages": [stage], "wall_s": wall, "closed_loop": loop}}
+
+
+def _dimension(*rows):
+    return {"rows": [{"system": s, "n": n, "value_rel_error": v} for s, n, v in rows]}
+
+
+def test_dimension_goals_take_the_closest_stored_run(tmp_path):
+    """Issue #18's goals (chapter 8's table, ``benchmarks/results/index.md``): the lowest number of any stored run,
+    the CPU-time goal's value only among runs within 30 minutes, the GPU's time from its fastest run."""
+    out, results = tmp_path / "artifacts", tmp_path / "benchmarks" / "results"
+    runs = {
+        "": _rigid(9e-3, 7e-3, 300.0),
+        "repeats/slow": _rigid(9e-4, 3e-3, 4000.0),
+        "repeats/quick": _rigid(2e-3, 1e-3, 1500.0),
+        "cuda_nd/gpu": _rigid(1.5e-3, 2e-3, 50.0, device="cuda"),
+    }
+    for where, record in runs.items():
+        (results / where).mkdir(parents=True, exist_ok=True)
+        (results / where / "rigid_body.json").write_text(json.dumps(record))
+    (results / "dimension.json").write_text(json.dumps(_dimension(("lq_ladder", 4, 6e-4), ("converse", 12, 0.3))))
+    (results / "repeats" / "l").mkdir()
+    (results / "repeats" / "l" / "dimension.json").write_text(
+        json.dumps(_dimension(("lq_ladder", 4, 5e-5), ("lq_ladder", 8, 2e-3)))
+    )
+    goals = {g.key: g for g in paper.dimension_goals(out)}
+    assert len(goals) == 7 + 2 + 1  # the rigid body's, the ladder's n = 4 and 8, the converse n = 12
+    v = goals["value error"]
+    assert (v.main, v.closest, v.run, v.met) == (9e-3, 9e-4, "repeats/slow", True)
+    assert goals["gradient error"].run == "repeats/quick"
+    q = goals["value error within 30 min"]
+    assert (q.closest, q.run, q.met) == (2e-3, "repeats/quick", False)
+    gpu = goals["time on one GPU"]
+    assert (gpu.main, gpu.closest, gpu.met) == (None, 50.0, True) and gpu.show() == "50 s (value error 1.50e-03)"
+    assert goals["closed loops settle"].show("main") == "100" and goals["closed loops settle"].show() == "–"
+    assert goals["time on 2 CPU cores"].met and goals["time on 2 CPU cores"].show("main") == "300 s"
+    four, eight = goals["ladder n = 4"], goals["ladder n = 8"]
+    assert (four.main, four.closest, four.run, four.met) == (6e-4, 5e-5, "repeats/l", True)
+    assert (eight.main, eight.met) == (None, False)
+    assert goals["converse n = 12"].closest == 0.3 and not goals["converse n = 12"].met

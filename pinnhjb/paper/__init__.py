@@ -6,7 +6,8 @@
 * :mod:`.reproduce`: the pipeline behind ``python -m pinnhjb reproduce``; :mod:`.evaluation` measures one
   trained case against its reference, :mod:`.tables` writes the results tables;
 * :mod:`.theorem3`: Theorem 3 demonstrated on a trained stage (chapter 5), ``python -m pinnhjb.paper.theorem3``;
-* :mod:`.family`: the third-order system over the whole range of R as one network (chapter 6).
+* :mod:`.family`: the third-order system over the whole range of R as one network (chapter 6);
+* :mod:`.goals`: issue #18's goals against the stored benchmark runs (chapter 8, ``benchmarks/index.py``).
 """
 
 import importlib as _importlib
@@ -29,6 +30,7 @@ from .artifacts import (
     stored_seeds,
 )
 from .cases import CASES, CLOSED_LOOP_SYSTEM, CONVERGED, INF, Case, cases
+from .goals import Goal, dimension_goals
 
 __all__ = [
     "CASES",
@@ -52,6 +54,8 @@ __all__ = [
     "dimension_rows",
     "benchmark_reference",
     "benchmark_reference_path",
+    "Goal",
+    "dimension_goals",
 ]
 
 # Submodules imported on first use (``paper.reproduce`` after ``from pinnhjb import paper``); theorem3 is not

@@ -1,0 +1,192 @@
+"""Issue #18's goals against the stored benchmark runs: for each goal, the main run's number, the closest
+stored run's (any run of ``benchmarks/rigid_body.py`` or ``benchmarks/dimension.py`` under
+``benchmarks/results/``) and whether that one meets it. Chapter 8's goals table and ``benchmarks/index.py`` both
+read :func:`dimension_goals`, so the two cannot disagree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from .artifacts import benchmark_run, benchmark_runs, dimension_rows
+
+__all__ = ["Goal", "dimension_goals", "GOAL_VALUE", "GOAL_GRAD", "GOAL_LADDER", "GOAL_CONVERSE"]
+
+#: The rigid body's value goal: max |V - V_ref| / max V_ref.
+GOAL_VALUE = 1e-3
+#: The rigid body's gradient goal: the mean relative error of grad V.
+GOAL_GRAD = 1e-2
+#: The LQ ladder's value goal at every n.
+GOAL_LADDER = 1e-4
+#: The converse system's value goal at n = 12.
+GOAL_CONVERSE = 1e-3
+#: The time goals, in seconds of training: on 2 CPU cores, and on one GPU.
+CPU_SECONDS, GPU_SECONDS = 1800.0, 180.0
+#: The closed-loop goal: every loop's cost within this factor of V_ref.
+COST_RATIO = 1.001
+
+
+@dataclass(frozen=True)
+class Goal:
+    """One goal of issue #18 and where the stored runs stand.
+
+    * ``key``: a short name in words: ``"value error"`` (the rigid body's), ``"ladder n = 6"``, ...; unique.
+    * ``text``: the goal as the page states it (Markdown with ``$...$`` math).
+    * ``main``: the main run's number (None: the main run has none; ``"settled"`` goals: the count).
+    * ``closest``: the closest stored run's number (None where only the main run is measured).
+    * ``run``: where ``closest`` comes from: ``"main run"`` or ``"<folder>/<run>"`` under ``benchmarks/results/``.
+    * ``met``: whether the closest number meets the goal.
+    * ``unit``: how the numbers print: ``"error"`` (``.2e``), ``"seconds"``, ``"count"`` or ``"ratio"``.
+    * ``note``: what else a reader needs beside the number (e.g. the value error of the fastest GPU run).
+    """
+
+    key: str
+    text: str
+    main: float | None
+    closest: float | None
+    run: str
+    met: bool
+    unit: str = "error"
+    note: str = ""
+
+    def show(self, which: str = "closest") -> str:
+        """``main`` or ``closest`` as a page prints it ("–" where there is none)."""
+        from ..report import num
+
+        x = getattr(self, which)
+        if x is None:
+            return "–"
+        text = {
+            "error": lambda: num(x, ".2e"),
+            "seconds": lambda: f"{x:.0f} s",
+            "count": lambda: f"{x:.0f}",
+            "ratio": lambda: f"{x:.4f}",
+        }[self.unit]()
+        return f"{text} ({self.note})" if self.note and which == "closest" else text
+
+
+def _end(run: dict) -> dict:
+    return run["infinite"]["stages"][-1]
+
+
+def dimension_goals(out: Path | None = None) -> list[Goal]:
+    """Every goal of issue #18, in the issue's order: the rigid body's six (value, gradient, loops settled,
+    closed-loop cost, time on 2 CPU cores, time on one GPU) and its value goal within the CPU time goal, then the
+    LQ ladder's value goal at each n any stored run measured, then the converse system's at n = 12.
+
+    * ``out``: the artifacts folder; None: :func:`pinnhjb.paper.artifacts_dir` (the runs lie beside it, under
+      ``benchmarks/results/``).
+
+    The closest stored run is the one with the lowest number over every stored run of that benchmark (for the
+    ladder and the converse system, over each run's last measured row of that system and n, default recipe).
+    The loops, cost and CPU-time goals are the main run's alone: closest runs by value trained longer.
+    """
+    rbs = benchmark_runs("rigid_body", out)
+    main = rbs["main run"]
+    on_gpu = {k: r for k, r in rbs.items() if r["meta"]["args"].get("device") == "cuda"}
+    quick = {k: r for k, r in rbs.items() if k not in on_gpu and r["infinite"]["wall_s"] <= CPU_SECONDS}
+
+    def lowest(runs: dict, key: str) -> tuple[str, float]:
+        k = min(runs, key=lambda k: _end(runs[k])[key])
+        return k, _end(runs[k])[key]
+
+    last, loop, wall = _end(main), main["infinite"]["closed_loop"], main["infinite"]["wall_s"]
+    k_v, v = lowest(rbs, "value_rel_error")
+    k_g, g = lowest(rbs, "grad_mean_rel_error")
+    k_q, q = lowest(quick, "value_rel_error") if quick else ("–", float("inf"))
+    goals = [
+        Goal("value error", r"rigid body: value error $\leq10^{-3}$", last["value_rel_error"], v, k_v, v <= GOAL_VALUE),
+        Goal(
+            "gradient error",
+            r"rigid body: gradient error $\leq10^{-2}$",
+            last["grad_mean_rel_error"],
+            g,
+            k_g,
+            g <= GOAL_GRAD,
+        ),
+        Goal(
+            "closed loops settle",
+            f"rigid body: all {loop['states']} closed loops settle",
+            loop["settled"],
+            None,
+            "main run",
+            loop["settled"] == loop["states"],
+            unit="count",
+        ),
+        Goal(
+            "closed-loop cost",
+            r"rigid body: closed-loop cost within 0.1% of $V^\star$",
+            loop["cost_ratio_max"],
+            None,
+            "main run",
+            loop["cost_ratio_max"] <= COST_RATIO,
+            unit="ratio",
+        ),
+        Goal(
+            "time on 2 CPU cores",
+            "rigid body: training under 30 min on 2 CPU cores",
+            wall,
+            None,
+            "main run",
+            wall <= CPU_SECONDS,
+            unit="seconds",
+        ),
+        Goal(
+            "value error within 30 min",
+            r"rigid body: value error $\leq10^{-3}$ within those 30 min",
+            last["value_rel_error"] if "main run" in quick else None,
+            q,
+            k_q,
+            q <= GOAL_VALUE,
+        ),
+    ]
+    if on_gpu:
+        k_gpu = min(on_gpu, key=lambda k: on_gpu[k]["infinite"]["wall_s"])
+        from ..report import num
+
+        goals.append(
+            Goal(
+                "time on one GPU",
+                "rigid body: training under 3 min on one GPU",
+                None,
+                on_gpu[k_gpu]["infinite"]["wall_s"],
+                k_gpu,
+                on_gpu[k_gpu]["infinite"]["wall_s"] <= GPU_SECONDS,
+                unit="seconds",
+                note=f"value error {num(_end(on_gpu[k_gpu])['value_rel_error'], '.2e')}",
+            )
+        )
+    main_rows = dimension_rows(benchmark_run(name="dimension", out=out))
+    rows = [(k, r) for k, run in benchmark_runs("dimension", out).items() for r in dimension_rows(run).values()]
+
+    def best(system: str, n: int) -> tuple[float, str]:
+        return min((r["value_rel_error"], k) for k, r in rows if (r["system"], r["n"]) == (system, n))
+
+    for n in sorted({r["n"] for _, r in rows if r["system"] == "lq_ladder"}):
+        v, k = best("lq_ladder", n)
+        mine = main_rows.get(("lq_ladder", n))
+        goals.append(
+            Goal(
+                f"ladder n = {n}",
+                rf"LQ ladder, $n={n}$: value error $\leq10^{{-4}}$",
+                None if mine is None else mine["value_rel_error"],
+                v,
+                k,
+                v <= GOAL_LADDER,
+            )
+        )
+    if any((r["system"], r["n"]) == ("converse", 12) for _, r in rows):
+        v, k = best("converse", 12)
+        mine = main_rows.get(("converse", 12))
+        goals.append(
+            Goal(
+                "converse n = 12",
+                r"converse system, $n=12$: value error $\leq10^{-3}$",
+                None if mine is None else mine["value_rel_error"],
+                v,
+                k,
+                v <= GOAL_CONVERSE,
+            )
+        )
+    return goals
