@@ -120,7 +120,7 @@ def run(task: dict) -> dict:
       ansatz, :class:`~pinnhjb.TrainConfig`), ``warm_start`` (True, False: each stage from fresh weights, or
       ``"best"``: both, the lower E kept; default True),
       ``budget`` (how many of the largest errors get :func:`_common.loop_budget`; 0: none), ``save`` (a folder for
-      the chain, or None).
+      the chain, written after every stage so that a run cut short keeps what it trained; or None).
     """
     if task["recipe"] == "deepxde":
         return run_deepxde(task)
@@ -135,14 +135,21 @@ def run(task: dict) -> dict:
     if task.get("lm"):  # the default recipe's stopping rule, from the command line
         config = config.with_phase("lm", **task["lm"])
     solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device=task["device"], progress=task["progress"])
-    start = time.perf_counter()
+    path = Path(task["save"]) / f"{system.name}-n{system.n}-{task['recipe']}.pt" if task.get("save") else None
+    start, saving = time.perf_counter(), 0.0
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
         sol = solver.solve(step)
         zero = sol.metrics["E_zero"]
-        while sol.metrics["E"] > task["ratio"] * zero and sol.horizon < task["max_horizon"] - 1e-9:
+        while True:
+            if path is not None:  # after every stage, so that a run cut short keeps the stages it trained
+                tic = time.perf_counter()
+                ph.save(sol, path)
+                saving += time.perf_counter() - tic
+            if sol.metrics["E"] <= task["ratio"] * zero or sol.horizon >= task["max_horizon"] - 1e-9:
+                break
             sol = solver.extend(sol, to=sol.horizon + step)
-    wall = time.perf_counter() - start
+    wall = time.perf_counter() - start - saving
     weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
     x = _states(system, task["points"], task["seed"]).numpy()  # the states of true_errors, V* there
     v_star = system.value_star(torch.as_tensor(x)).detach().numpy()
@@ -165,8 +172,6 @@ def run(task: dict) -> dict:
     row = dict(_row(task, system, weights, measured, last), chain=chain)
     if task.get("budget"):  # where the largest errors come from: the residual along their loops, inside the box?
         row["budget"] = loop_budget(sol, x, v_star, task["budget"])
-    if task.get("save"):
-        ph.save(sol, Path(task["save"]) / f"{system.name}-n{system.n}-{task['recipe']}.pt")
     return row
 
 
@@ -437,7 +442,9 @@ def main(argv=None) -> int:
         help="the default recipe with grad V(0, t) = 0 built into the ansatz too (TrainConfig.flat_origin)",
     )
     add_start_arguments(p, note="; the default recipe only")
-    p.add_argument("--save", action="store_true", help="store the default recipe's chains under OUT/chains/")
+    p.add_argument(
+        "--save", action="store_true", help="store the default recipe's chains under OUT/chains/, after every stage"
+    )
     add_lm_arguments(p)
     p.add_argument(
         "--lm-points",

@@ -294,3 +294,22 @@ def test_cuda_script_checks_its_parts_and_skips_long_runs_after_a_failed_tiny_on
     log = (tmp_path / "log.txt").read_text()
     assert log.count("benchmarks/rigid_body.py") == 1 and "--lm-steps 5" in log
     assert "CUDA is not available" in log and not (tmp_path / "rigid_body").exists()
+
+
+def test_dimension_save_keeps_every_stage_of_a_run_cut_short(tmp_path, monkeypatch):
+    """With --save the chain is written after every stage: a run stopped during its second stage leaves the
+    first on disk, loadable."""
+    import pinnhjb as ph
+
+    dimension = _module("dimension")
+
+    def cut(self, sol, to, **kwargs):
+        raise KeyboardInterrupt("cut short during the second stage")
+
+    monkeypatch.setattr(ph.FiniteHorizonSolver, "extend", cut)
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "1"]
+    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3", "--save"]
+    with pytest.raises(KeyboardInterrupt):
+        dimension.main([*tiny, "--out", str(tmp_path)])
+    sol = ph.load(tmp_path / "chains" / "lq_ladder-n2-default.pt")
+    assert sol.horizon == 0.5 and len(sol.stages) == 1
