@@ -196,6 +196,8 @@ def main(argv=None) -> int:
     parser.add_argument("--results", type=Path, default=RESULTS, help="the results folder (default: this repo's)")
     parser.add_argument("--check", action="store_true", help="only check that index.md is up to date")
     args = parser.parse_args(argv)
+    if not args.results.is_dir():
+        parser.error(f"--results: no results folder at {args.results}")
     page, path = render(args.results), args.results / "index.md"
     if args.check:
         if not path.is_file() or path.read_text() != page:

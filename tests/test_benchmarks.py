@@ -185,5 +185,7 @@ def test_results_index_is_generated():
     assert (SPEED.parent / "results" / "index.md").read_text() == page
     assert "| `repeats/ladder-n6-best-start` |" in page and "| `main run` |" in page
     assert index.main(["--check"]) == 0
+    with pytest.raises(SystemExit):  # a wrong folder is a usage error, not a stale page
+        index.main(["--check", "--results", str(SPEED.parent / "no-such-folder")])
     meta = {"command": "benchmarks/dimension.py --ladder  --note two words --out /tmp/x --no-progress --seed 1"}
     assert index.command(meta) == 'benchmarks/dimension.py --ladder "" --seed 1'
