@@ -12,6 +12,9 @@ the value are measured on ``--points`` seeded uniform states of Omega:
   error it carried from its terminal cost (``carried``); ``--save`` stores its chains. ``--train-scale``,
   ``--flat-origin`` and ``--cold-start`` or ``--best-start`` change its training box, its ansatz and its warm
   start;
+* **Carried on.** ``--resume DIR`` extends the chains a run saved (``DIR`` its ``--out``, with ``--save``: every
+  stage is saved as it ends, so a run cut short counts too) to ``--max-horizon``, with the same settings (checked
+  before any work), its stages and wall time continued;
 * at the dimensions ``--compare``, our first-order recipe ``adam_lbfgs`` and DeepXDE beside the default, on both
   systems. DeepXDE (``deepxde``) is the chain a user would build with its API (:mod:`_deepxde`: 3 x 100 in float32,
   ``adam_lbfgs``'s Adam and L-BFGS budgets a stage, soft conditions), extended with the same stages and the same
@@ -111,6 +114,11 @@ def _start_kept(stage) -> dict:
     return {} if other is None else {"started_warm": stage.started_warm, "other_E_ratio": other["E_ratio"]}
 
 
+def chain_name(system, recipe: str) -> str:
+    """The file a run's chain is saved to under ``OUT/chains/`` (``--save``) and resumed from (``--resume``)."""
+    return f"{system.name}-n{system.n}-{recipe}.pt"
+
+
 def run(task: dict) -> dict:
     """One (system, n, recipe) run: train by extension until the E bound or the horizon cap, then the true errors.
 
@@ -120,7 +128,9 @@ def run(task: dict) -> dict:
       ansatz, :class:`~pinnhjb.TrainConfig`), ``warm_start`` (True, False: each stage from fresh weights, or
       ``"best"``: both, the lower E kept; default True),
       ``budget`` (how many of the largest errors get :func:`_common.loop_budget`; 0: none), ``save`` (a folder for
-      the chain, written after every stage so that a run cut short keeps what it trained; or None).
+      the chain, written after every stage so that a run cut short keeps what it trained, with its wall time so
+      far and the run's ``settings`` and ``machine``; or None), ``resume`` (a chain saved so, extended from its
+      last stage with its wall time carried on; or None).
     """
     if task["recipe"] == "deepxde":
         return run_deepxde(task)
@@ -135,21 +145,26 @@ def run(task: dict) -> dict:
     if task.get("lm"):  # the default recipe's stopping rule, from the command line
         config = config.with_phase("lm", **task["lm"])
     solver = ph.FiniteHorizonSolver(system, config, seed=task["seed"], device=task["device"], progress=task["progress"])
-    path = Path(task["save"]) / f"{system.name}-n{system.n}-{task['recipe']}.pt" if task.get("save") else None
+    path = Path(task["save"]) / chain_name(system, task["recipe"]) if task.get("save") else None
+    resumed = None  # --resume: the stored chain, carried on from its last stage with its wall time
+    if task.get("resume"):
+        resumed = ph.load(task["resume"], system=system, device=task["device"], config=config)
+    before = 0.0 if resumed is None else resumed.provenance["wall_s"]
     start, saving = time.perf_counter(), 0.0
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
-        sol = solver.solve(step)
+        sol = solver.solve(step) if resumed is None else solver.extend(resumed, to=resumed.horizon + step)
         zero = sol.metrics["E_zero"]
         while True:
             if path is not None:  # after every stage, so that a run cut short keeps the stages it trained
                 tic = time.perf_counter()
-                ph.save(sol, path)
+                elapsed = before + tic - start - saving  # with the settings, what --resume carries on
+                ph.save(sol, path, wall_s=elapsed, settings=task["settings"], machine=task["machine"])
                 saving += time.perf_counter() - tic
             if sol.metrics["E"] <= task["ratio"] * zero or sol.horizon >= task["max_horizon"] - 1e-9:
                 break
             sol = solver.extend(sol, to=sol.horizon + step)
-    wall = time.perf_counter() - start - saving
+    wall = before + time.perf_counter() - start - saving
     weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
     x = _states(system, task["points"], task["seed"]).numpy()  # the states of true_errors, V* there
     v_star = system.value_star(torch.as_tensor(x)).detach().numpy()
@@ -318,6 +333,15 @@ PAGE_KEYS = {  # what write_page reads from a run's meta (lm_points: from the co
 }
 
 
+def _resumed_clause(meta: dict) -> str:
+    """The page's words on ``--resume``: the run carried on, and where its stored stages ran."""
+    if not meta.get("resumed_from"):
+        return ""
+    where = " and ".join(m or "an unrecorded machine" for m in meta["resumed_machines"])
+    clause = f"the chains of `{meta['resumed_from']}` carried on (their stages and wall time, on {where}, continued"
+    return f"{clause} here), "
+
+
 def write_page(record: dict, out: Path) -> list[str]:
     """Write ``out/dimension.md`` and ``out/dimension.png`` from a run's ``record`` (its ``dimension.json``) alone,
     so that a stored page can be made again from its JSON (``--render``); returns the page's lines."""
@@ -352,7 +376,7 @@ def write_page(record: dict, out: Path) -> list[str]:
         f"{'each stage from fresh weights (no warm start), ' if a.cold_start else ''}"
         f"{'each stage from the stage before and from fresh weights, the lower E kept, ' if a.best_start else ''}"
         f"{f'LM{rule}, ' if rule else ''}"
-        f"seed {a.seed}, {a.threads} thread(s) per run, "
+        f"{_resumed_clause(meta)}seed {a.seed}, {a.threads} thread(s) per run, "
         f"{a.workers or 1} run(s) at a time, {a.machine}; torch "
         f"{a.torch}; created {a.created}. Errors against the exact V* on {a.points} seeded uniform "
         "states of Omega.",
@@ -391,6 +415,40 @@ def write_page(record: dict, out: Path) -> list[str]:
     figure(rows, out / "dimension.png")
     (out / "dimension.md").write_text("\n".join(lines) + "\n")
     return lines
+
+
+RESUME_SAME = (  # the settings a run carried on with --resume shares with the run that saved its chains
+    *("seed", "threads", "step", "converse_step", "ratio", "points", "width", "retries", "loop_share"),
+    *("train_scale", "flat_origin", "budget_states", "lm_points", "config", "device"),
+)
+
+
+def _resumed(p, args, tasks: list[dict], settings: dict) -> list[str]:
+    """Check ``--resume DIR`` before any work: every run is the default recipe's, its chain saved under
+    ``DIR/chains/`` with these ``settings`` and ending below ``--max-horizon``; sets each task's ``resume`` and
+    returns the machines the stored stages ran on."""
+    if any(t["recipe"] != "default" for t in tasks):
+        p.error("--resume carries the default recipe's chains on: pass --compare ''")
+    machines = []
+    for task in tasks:
+        system = BUILDERS[task["system"]](task["n"], task["train_scale"])
+        path = args.resume / "chains" / chain_name(system, "default")
+        try:
+            sol = ph.load(path, system=system, device="cpu")
+        except (OSError, ValueError) as exc:
+            p.error(f"--resume: cannot load the chain of {task['system']} n = {task['n']}: {exc}")
+        stored = sol.provenance.get("settings")
+        if stored is None or "wall_s" not in sol.provenance:
+            p.error(f"--resume: {path} was saved without its settings and wall time (an older dimension.py)")
+        if differ := [key for key in RESUME_SAME if stored.get(key) != settings[key]]:
+            p.error(f"--resume: {path} was trained with other settings: {', '.join(differ)}")
+        if sol.horizon >= args.max_horizon - 1e-9:
+            p.error(f"--resume: {path} ends at T = {sol.horizon:g}; raise --max-horizon ({args.max_horizon:g})")
+        if sol.metrics["E"] <= args.ratio * sol.metrics["E_zero"]:
+            p.error(f"--resume: {path} already meets E / E(V = 0) <= {args.ratio:g}")
+        task["resume"] = str(path)
+        machines.append(sol.provenance.get("machine"))
+    return sorted(set(machines))
 
 
 def main(argv=None) -> int:
@@ -444,6 +502,14 @@ def main(argv=None) -> int:
     add_start_arguments(p, note="; the default recipe only")
     p.add_argument(
         "--save", action="store_true", help="store the default recipe's chains under OUT/chains/, after every stage"
+    )
+    p.add_argument(
+        "--resume",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="a run's --out folder whose chains (saved with --save) this run extends to --max-horizon, with the same "
+        "settings (checked before any work); the default recipe only (--compare '')",
     )
     add_lm_arguments(p)
     p.add_argument(
@@ -542,21 +608,12 @@ def main(argv=None) -> int:
         for n in ns
         for recipe in ["default"] + (against if n in compare else [])
     ]
-    rows = map_runs(
-        run,
-        tasks,
-        workers=args.workers,
-        scheduler=args.scheduler,
-        threads=args.threads,
-        progress=not args.no_progress,
-        desc="dimension runs",
-        label=lambda t: f"{t['system']} n={t['n']} {t['recipe']}",
-    )
     meta = {
         **provenance(),
         "seed": args.seed,
         "threads": args.threads,
         "machine": machine(args.device),
+        "device": args.device,
         "step": args.step,
         "converse_step": args.converse_step,
         "ratio": args.ratio,
@@ -578,6 +635,22 @@ def main(argv=None) -> int:
         "configs": {"default": default_config.to_dict(), "adam_lbfgs": ph.TrainConfig.preset("adam_lbfgs").to_dict()},
         "deepxde": _deepxde_version() if "deepxde" in against else None,
     }
+    same = {key: meta[key] for key in RESUME_SAME}  # what a resumed run must share with its stored chains
+    for task in tasks:
+        task.update(settings=same, machine=meta["machine"])
+    if args.resume is not None:
+        meta["resumed_from"] = str(args.resume)
+        meta["resumed_machines"] = _resumed(p, args, tasks, same)
+    rows = map_runs(
+        run,
+        tasks,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        threads=args.threads,
+        progress=not args.no_progress,
+        desc="dimension runs",
+        label=lambda t: f"{t['system']} n={t['n']} {t['recipe']}",
+    )
     missing = [r for r in rows if "status" in r]
     rows = [r for r in rows if "status" not in r]
     default = [r for r in rows if r["recipe"] == "default"]

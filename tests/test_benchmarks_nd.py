@@ -298,7 +298,7 @@ def test_cuda_script_checks_its_parts_and_skips_long_runs_after_a_failed_tiny_on
 
 def test_dimension_save_keeps_every_stage_of_a_run_cut_short(tmp_path, monkeypatch):
     """With --save the chain is written after every stage: a run stopped during its second stage leaves the
-    first on disk, loadable."""
+    first on disk, loadable, with its wall time so far; --resume carries it on."""
     import pinnhjb as ph
 
     dimension = _module("dimension")
@@ -312,4 +312,41 @@ def test_dimension_save_keeps_every_stage_of_a_run_cut_short(tmp_path, monkeypat
     with pytest.raises(KeyboardInterrupt):
         dimension.main([*tiny, "--out", str(tmp_path)])
     sol = ph.load(tmp_path / "chains" / "lq_ladder-n2-default.pt")
-    assert sol.horizon == 0.5 and len(sol.stages) == 1
+    assert sol.horizon == 0.5 and len(sol.stages) == 1 and sol.provenance["wall_s"] > 0
+    monkeypatch.undo()
+    dimension.main([*tiny, "--resume", str(tmp_path), "--out", str(tmp_path / "on")])
+    (row,) = json.loads((tmp_path / "on" / "dimension.json").read_text())["rows"]
+    assert row["T"] == 1.0 and row["stages"] == 2 and row["wall_s"] > sol.provenance["wall_s"]
+
+
+def test_dimension_resume_carries_a_saved_chain_on_as_one_run_would(tmp_path, capsys):
+    """--resume extends the chains a --save run stored, to the same chain and errors as one uninterrupted run,
+    its wall time carried on; other settings, a horizon no further, other recipes or no chain are usage errors
+    before any work."""
+    dimension = _module("dimension")
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--points", "256"]
+    tiny += ["--threads", "1", "--no-progress", "--lm-steps", "3", "--budget-states", "0"]
+    dimension.main([*tiny, "--max-horizon", "1", "--out", str(tmp_path / "straight")])
+    dimension.main([*tiny, "--max-horizon", "0.5", "--save", "--out", str(tmp_path / "half")])
+    resume = ["--resume", str(tmp_path / "half")]
+    for bad, says in (
+        (["--max-horizon", "1", "--lm-steps", "4"], "other settings: config"),
+        (["--max-horizon", "1", "--seed", "1"], "other settings: seed"),
+        (["--max-horizon", "0.5"], "ends at T = 0.5; raise --max-horizon (0.5)"),
+        (["--max-horizon", "1", "--compare", "2"], "the default recipe's chains"),
+        (["--max-horizon", "1", "--ladder", "4"], "cannot load the chain of lq_ladder n = 4"),
+    ):
+        with pytest.raises(SystemExit):
+            dimension.main([*tiny, *resume, *bad, "--out", str(tmp_path / "bad")])
+        assert says in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    dimension.main([*tiny, *resume, "--max-horizon", "1", "--out", str(tmp_path / "carried")])
+    straight, half, carried = (
+        json.loads((tmp_path / name / "dimension.json").read_text())["rows"][0]
+        for name in ("straight", "half", "carried")
+    )
+    assert carried["T"] == straight["T"] == 1.0 and carried["stages"] == 2
+    for key in ("value_rel_error", "grad_mean_rel_error", "E_ratio"):
+        assert carried[key] == pytest.approx(straight[key], rel=1e-6)
+    assert carried["wall_s"] > half["wall_s"]
+    page = (tmp_path / "carried" / "dimension.md").read_text()
+    assert f"the chains of `{tmp_path / 'half'}` carried on" in page
