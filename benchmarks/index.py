@@ -13,11 +13,12 @@ committed page is this script's output. Takes a second, trains nothing::
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import shlex
 import sys
 from pathlib import Path
+
+from pinnhjb.paper import benchmark_runs, dimension_goals
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -37,16 +38,6 @@ BENCHMARKS = (
 #: Flags left out of the commands shown: where the output went and the free-text note.
 _DROP = {"--out", "--note", "--artifacts"}
 _DROP_BARE = {"--no-progress"}
-
-
-def _runs(name: str, results: Path) -> dict[str, dict]:
-    runs = {}
-    main = results / f"{name}.json"
-    if main.is_file():
-        runs["main run"] = json.loads(main.read_text())
-    for path in sorted(results.glob(f"*/*/{name}.json")) + sorted(results.glob(f"*/{name}.json")):
-        runs[str(path.parent.relative_to(results))] = json.loads(path.read_text())
-    return runs
 
 
 def _num(v, spec: str = ".2e") -> str:
@@ -144,8 +135,6 @@ def _other(name: str, runs: dict[str, dict]) -> list[str]:
 
 def _goals(results: Path) -> list[str]:
     """Issue #18's goals against these runs (:func:`pinnhjb.paper.dimension_goals`), as chapter 8 tabulates them."""
-    from pinnhjb.paper import dimension_goals
-
     try:
         goals = dimension_goals(results.parent.parent / "artifacts")
     except (FileNotFoundError, KeyError):  # a results folder without the main runs
@@ -177,7 +166,7 @@ def render(results: Path = RESULTS) -> str:
     ]
     out += _goals(results)
     for name in BENCHMARKS:
-        runs = _runs(name, results)
+        runs = benchmark_runs(name, results.parent.parent / "artifacts")  # whose results_dir is results
         if not runs:
             continue
         out += ["", f"## `{name}.py`" if (results.parent / f"{name}.py").is_file() else f"## `{name}`", ""]

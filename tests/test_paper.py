@@ -214,6 +214,9 @@ def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
         "main run": {"which": "main dimension"},
         "repeats/run-a": {"which": "repeat"},
     }
+    (results / "cuda").mkdir()  # a run one folder down, of a benchmark without a main run
+    (results / "cuda" / "speed.json").write_text(json.dumps({"which": "cuda speed"}))
+    assert paper.benchmark_runs("speed", out=out) == {"cuda": {"which": "cuda speed"}}
     record = {
         "rows": [  # the last measured row of each (system, n) and recipe
             {"system": "lq_ladder", "n": 4, "value_rel_error": 1.0},

@@ -181,16 +181,19 @@ def benchmark_run(
 
 
 def benchmark_runs(name: str = "rigid_body", out: Path | None = None) -> dict[str, dict]:
-    """Every stored run of a benchmark, by where it lies: ``"main run"``, then ``"<folder>/<run>"`` for each
-    ``<folder>/<run>/<name>.json`` under :func:`results_dir` (``repeats/...``, ``cuda_nd/...``), in name order.
+    """Every stored run of a benchmark, by where it lies: ``"main run"`` where there is one, then ``"<folder>/<run>"``
+    for each ``<folder>/<run>/<name>.json`` and ``"<folder>"`` for each ``<folder>/<name>.json`` under
+    :func:`results_dir` (``repeats/...``, ``cuda_nd/...``, ``cuda``), in name order.
 
     * ``name``: the benchmark: ``"rigid_body"``, ``"dimension"``, ...
     * ``out``: the artifacts folder; None: :func:`artifacts_dir`.
     """
-    runs = {"main run": benchmark_run(name=name, out=out)}
-    for path in sorted(results_dir(out).glob(f"*/*/{name}.json")):
-        folder, run = path.parent.parent.name, path.parent.name
-        runs[f"{folder}/{run}"] = benchmark_run(run, name, folder=folder, out=out)
+    base = results_dir(out)
+    runs = {"main run": benchmark_run(name=name, out=out)} if (base / f"{name}.json").is_file() else {}
+    where = sorted(path.parent.relative_to(base) for path in base.glob(f"*/**/{name}.json"))
+    for folder in where:
+        if len(folder.parts) <= 2:  # results/<folder>/<run>/ or results/<folder>/
+            runs[folder.as_posix()] = json.loads((base / folder / f"{name}.json").read_text())
     return runs
 
 
