@@ -291,3 +291,6 @@ def test_dimension_goals_take_the_closest_stored_run(tmp_path):
     assert (four.main, four.closest, four.run, four.met) == (6e-4, 5e-5, "repeats/l", True)
     assert (eight.main, eight.met) == (None, False)
     assert goals["converse n = 12"].closest == 0.3 and not goals["converse n = 12"].met
+    # each names its system, as chapter 8 groups them
+    assert [g.system for g in goals.values()] == ["rigid body"] * 7 + ["LQ ladder"] * 2 + ["converse system"]
+    assert four.aim == r"$n=4$: value error $\leq10^{-4}$" and v.aim == r"value error $\leq10^{-3}$"

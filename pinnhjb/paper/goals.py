@@ -6,6 +6,7 @@ read :func:`dimension_goals`, so the two cannot disagree.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,6 +50,16 @@ class Goal:
     met: bool
     unit: str = "error"
     note: str = ""
+
+    @property
+    def system(self) -> str:
+        """The system the goal is for, as ``text`` opens: ``"rigid body"``, ``"LQ ladder"``, ``"converse system"``."""
+        return re.split("[,:]", self.text, maxsplit=1)[0]
+
+    @property
+    def aim(self) -> str:
+        """``text`` after the system's name: ``"value error $\\leq10^{-3}$"``, ``"$n=6$: value error ..."``."""
+        return self.text[len(self.system) :].lstrip(",: ")
 
     def show(self, which: str = "closest") -> str:
         """``main`` or ``closest`` as a page prints it ("–" where there is none)."""
