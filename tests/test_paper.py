@@ -285,6 +285,7 @@ def test_dimension_goals_take_the_closest_stored_run(tmp_path):
     assert (q.closest, q.run, q.met) == (2e-3, "repeats/quick", False)
     gpu = goals["time on one GPU"]
     assert (gpu.main, gpu.closest, gpu.met) == (None, 50.0, True) and gpu.show() == "50 s (value error 1.50e-03)"
+    assert gpu.show(note=False) == "50 s"
     assert goals["closed loops settle"].show("main") == "100" and goals["closed loops settle"].show() == "–"
     assert goals["time on 2 CPU cores"].met and goals["time on 2 CPU cores"].show("main") == "300 s"
     four, eight = goals["ladder n = 4"], goals["ladder n = 8"]

@@ -61,8 +61,9 @@ class Goal:
         """``text`` after the system's name: ``"value error $\\leq10^{-3}$"``, ``"$n=6$: value error ..."``."""
         return self.text[len(self.system) :].lstrip(",: ")
 
-    def show(self, which: str = "closest") -> str:
-        """``main`` or ``closest`` as a page prints it ("–" where there is none)."""
+    def show(self, which: str = "closest", note: bool = True) -> str:
+        """``main`` or ``closest`` as a page prints it ("–" where there is none), ``closest`` with the ``note``
+        in brackets unless ``note=False``."""
         from ..report import num
 
         x = getattr(self, which)
@@ -74,7 +75,7 @@ class Goal:
             "count": lambda: f"{x:.0f}",
             "ratio": lambda: f"{x:.4f}",
         }[self.unit]()
-        return f"{text} ({self.note})" if self.note and which == "closest" else text
+        return f"{text} ({self.note})" if note and self.note and which == "closest" else text
 
 
 def _end(run: dict) -> dict:
