@@ -651,6 +651,7 @@ def main(argv=None) -> int:
         desc="dimension runs",
         label=lambda t: f"{t['system']} n={t['n']} {t['recipe']}",
     )
+    meta["created"] = provenance()["created"]  # when the runs ended
     missing = [r for r in rows if "status" in r]
     rows = [r for r in rows if "status" not in r]
     default = [r for r in rows if r["recipe"] == "default"]
