@@ -133,10 +133,15 @@ def _other(name: str, runs: dict[str, dict]) -> list[str]:
     return lines
 
 
+def _artifacts(results: Path) -> Path:
+    """The artifacts folder whose :func:`pinnhjb.paper.results_dir` is ``results``, for the package's readers."""
+    return results.parent.parent / "artifacts"
+
+
 def _goals(results: Path) -> list[str]:
     """Issue #18's goals against these runs (:func:`pinnhjb.paper.dimension_goals`), as chapter 8 tabulates them."""
     try:
-        goals = dimension_goals(results.parent.parent / "artifacts")
+        goals = dimension_goals(_artifacts(results))
     except (FileNotFoundError, KeyError):  # a results folder without the main runs
         return []
     lines = [
@@ -166,7 +171,7 @@ def render(results: Path = RESULTS) -> str:
     ]
     out += _goals(results)
     for name in BENCHMARKS:
-        runs = benchmark_runs(name, results.parent.parent / "artifacts")  # whose results_dir is results
+        runs = benchmark_runs(name, _artifacts(results))
         if not runs:
             continue
         out += ["", f"## `{name}.py`" if (results.parent / f"{name}.py").is_file() else f"## `{name}`", ""]
