@@ -18,7 +18,7 @@ from .config import TrainConfig
 from .gauss_newton import DivergenceError
 from .optimizers import LBFGS, Adam, LevenbergMarquardt
 from .parametric import ParametricFamily, WeightFamily
-from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
+from .solution import AveragedSolution, FiniteHorizonSolution, Stage, SteadyStateSolution
 from .solver import FiniteHorizonSolver, SteadyStateSolver
 from .storage import CheckpointError, load, save
 from .systems import ControlAffineSystem, get_system
@@ -41,6 +41,7 @@ __all__ = [
     "SteadyStateSolver",
     "FiniteHorizonSolution",
     "SteadyStateSolution",
+    "AveragedSolution",
     "Stage",
     "ControlAffineSystem",
     "get_system",

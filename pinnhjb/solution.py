@@ -4,7 +4,7 @@ A :class:`FiniteHorizonSolution` is a chain of :class:`Stage` objects. Stage 1 s
 :eq:`eq-hjbt` on [0, T_1] with terminal cost phi; stage k solves the extension HJB :eq:`eq-hjbinc` on
 [0, T_k - T_{k-1}] with terminal cost V_{T_{k-1}}(., 0) (Theorem 2), so ``value(x, t)`` of the chain is
 V_{T_K}(x, t) for any t in [0, T_K]. A :class:`SteadyStateSolution` is the direct steady-state PINN (the
-paper's T = infinity).
+paper's T = infinity). An :class:`AveragedSolution` is the mean of solutions trained independently (other seeds).
 
 Results are frozen dataclasses; their metrics are computed once, by the solver or read from a checkpoint. A
 changed result is a new one, made with ``dataclasses.replace``.
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 
 Tensor = torch.Tensor
 
-__all__ = ["Stage", "FiniteHorizonSolution", "SteadyStateSolution"]
+__all__ = ["Stage", "FiniteHorizonSolution", "SteadyStateSolution", "AveragedSolution"]
 
 
 class _ValueSolution:
@@ -416,3 +416,68 @@ class SteadyStateSolution(_ValueSolution):
             f"SteadyStateSolution(system={self.system.name!r}, E={e if e is None else f'{e:.3e}'}, "
             f"wall_time={self.wall_time:.1f}s)"
         )
+
+
+@dataclass(eq=False, frozen=True)
+class AveragedSolution(_ValueSolution):
+    """The mean of solutions of one system trained independently (other seeds): V = (1/K) sum_k V_k, and so
+    grad V and the policy mu = -1/2 R^{-1} g' grad V :eq:`eq-muhat` are the members' means too. Where what is left
+    of each member's error is its own (its points and its first weights) rather than the recipe's, the mean is
+    closer to V* than its members (chapter 9, section 4). Checkpoints store the members, one by one.
+
+    * ``members``: the solutions (at least one; a list or tuple of :class:`FiniteHorizonSolution` or
+      :class:`SteadyStateSolution`), all of the same system (its name and n); each is evaluated at the same t,
+      so chains give the mean of their V_T(., 0) at t = 0.
+    """
+
+    members: tuple
+
+    def __post_init__(self):
+        members = tuple(self.members) if isinstance(self.members, (list, tuple)) else None
+        if not members:
+            raise ValueError(f"an AveragedSolution needs a non-empty list of solutions; got {self.members!r}")
+        for m in members:
+            if not isinstance(m, (FiniteHorizonSolution, SteadyStateSolution)):
+                raise TypeError(f"members must be FiniteHorizonSolution or SteadyStateSolution; got {type(m).__name__}")
+        first = members[0].system
+        for m in members[1:]:
+            if (m.system.name, m.system.n) != (first.name, first.n):
+                raise ValueError(
+                    f"members must solve one system; got '{first.name}' (n = {first.n}) and "
+                    f"'{m.system.name}' (n = {m.system.n})"
+                )
+        object.__setattr__(self, "members", members)
+
+    @property
+    def system(self) -> ControlAffineSystem:
+        """The first member's system (all members solve one)."""
+        return self.members[0].system
+
+    @property
+    def converged(self) -> None:
+        """Always None: no tolerance is asked of a mean."""
+        return None
+
+    @property
+    def metrics(self) -> dict:
+        """Empty: a mean is measured by :meth:`evaluate`, not when it is built."""
+        return {}
+
+    @property
+    def wall_time(self) -> float:
+        """The members' training seconds, summed (independent runs may have run at the same time)."""
+        return sum(m.wall_time for m in self.members)
+
+    def _models(self):
+        return [model for m in self.members for model in m._models()]
+
+    def _model_value(self, x: Tensor, t: float) -> Tensor:
+        return sum(m._value_fn(t)(x) for m in self.members) / len(self.members)
+
+    def to(self, device):
+        """This mean with every member on ``device`` (:meth:`FiniteHorizonSolution.to`)."""
+        moved = tuple(m.to(device) for m in self.members)
+        return self if all(a is b for a, b in zip(moved, self.members)) else replace(self, members=moved)
+
+    def __repr__(self):
+        return f"AveragedSolution(system={self.system.name!r}, members={len(self.members)})"

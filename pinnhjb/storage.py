@@ -129,7 +129,8 @@ def save(solution, path, **extra) -> Path:
     to :func:`load` again.
     """
     if not isinstance(solution, (FiniteHorizonSolution, SteadyStateSolution)):
-        raise TypeError(f"cannot save a {type(solution).__name__}")
+        members = " (save its members one by one)" if hasattr(solution, "members") else ""
+        raise TypeError(f"cannot save a {type(solution).__name__}{members}")
     path = Path(path)
     spec = solution.system.spec()
     base = {

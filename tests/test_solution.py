@@ -206,3 +206,46 @@ def test_the_horizon_check_and_residual_field_of_a_shorter_horizon(lq_chain):
     x = lq_chain.system.grid(5).numpy()
     np.testing.assert_allclose(lq_chain.residual_field(x, horizon=1.0), short.residual_field(x), rtol=1e-9, atol=1e-12)
     assert lq_chain.evaluate(11, horizon=1.5)["E"] > lq_chain.evaluate(11)["E"]  # a shorter horizon, a larger E
+
+
+# ------------------------------------------------------------------------------ the mean of independent chains
+@pytest.fixture(scope="module")
+def lq_chain_seed1(lq_chain):
+    """The chain of ``lq_chain`` trained again from seed 1."""
+    solver = ph.FiniteHorizonSolver(lq_chain.system, lq_chain.config, seed=1, device="cpu", progress=False)
+    return solver.extend(solver.solve(1.0), to=2.0)
+
+
+def test_an_averaged_solution_is_the_mean_of_its_members(lq_chain, lq_chain_seed1):
+    pair = (lq_chain, lq_chain_seed1)
+    mean = ph.AveragedSolution(list(pair))
+    assert mean.members == pair and mean.system is lq_chain.system and mean.converged is None
+    assert mean.metrics == {} and mean.wall_time == pytest.approx(sum(m.wall_time for m in pair))
+    assert repr(mean) == "AveragedSolution(system='lq', members=2)"
+    x = lq_chain.system.grid(7).numpy()
+    for what in ("value", "gradient", "policy"):  # the policy is linear in grad V
+        expected = (getattr(lq_chain, what)(x) + getattr(lq_chain_seed1, what)(x)) / 2
+        np.testing.assert_allclose(getattr(mean, what)(x), expected, rtol=1e-12, atol=1e-14)
+    for t in (0.5, 2.0):  # the members' value at the same t
+        expected = (lq_chain.value(x, t) + lq_chain_seed1.value(x, t)) / 2
+        np.testing.assert_allclose(mean.value(x, t), expected, rtol=1e-12, atol=1e-14)
+    # its largest error against V* is at most its members' (the mean of the errors): measured, not stored
+    errors = [s.evaluate(11)["value_max_error"] for s in (mean, *pair)]
+    assert errors[0] <= max(errors[1:])
+    assert mean.closed_loop(x[:3], t_final=1.0).x.shape[1:] == (3, 2)
+    assert mean.to("cpu") is mean
+
+
+def test_an_averaged_solution_refuses_what_it_cannot_mean(lq_chain, pendulum, tmp_path):
+    with pytest.raises(ValueError, match="non-empty list of solutions"):
+        ph.AveragedSolution([])
+    with pytest.raises(TypeError, match="members must be FiniteHorizonSolution or SteadyStateSolution; got str"):
+        ph.AveragedSolution([lq_chain, "chain.pt"])
+    steady = ph.SteadyStateSolver(pendulum, config(), seed=0, device="cpu", progress=False).solve()
+    with pytest.raises(ValueError, match="members must solve one system"):
+        ph.AveragedSolution([lq_chain, steady])
+    mean = ph.AveragedSolution([lq_chain])
+    with pytest.raises(TypeError, match="AveragedSolution has no horizon"):
+        mean.value(np.zeros((1, 2)), horizon=1.0)
+    with pytest.raises(TypeError, match=r"cannot save a AveragedSolution \(save its members one by one\)"):
+        ph.save(mean, tmp_path / "mean.pt")
