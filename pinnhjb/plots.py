@@ -32,6 +32,7 @@ __all__ = [
     "loop_residual",
     "against_dimension",
     "carried_error",
+    "averaged_error",
 ]
 
 CMAP = "viridis"
@@ -576,5 +577,47 @@ def carried_error(before, after: dict, goal: float | None = None, title: str = "
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2, frameon=False, markerscale=3)
     if title:
         ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def averaged_error(errors, goal: float | None = None, labels=None):
+    """What averaging independently trained solutions does to the largest error: left, two members' errors state
+    by state (uncorrelated errors fill the square, shared ones lie on the diagonal); right, the largest error of the
+    mean of the first k members against k, beside each member's own and what independent errors of equal size
+    would give (the members' mean largest error over the square root of k).
+
+    * ``errors``: (K, N) each member's errors at the same N states (e.g. V - V* per max V*), K >= 2.
+    * ``goal``: an error bound drawn as a dashed line on the right; None: none.
+    * ``labels``: K names of the members, the first two for the left axes; None: "member 1", ...
+    """
+    errors = np.asarray(errors, dtype=float)
+    if errors.ndim != 2 or errors.shape[0] < 2:
+        raise ValueError(f"errors must be (K, N) with K >= 2 members; got shape {errors.shape}")
+    k = np.arange(1, errors.shape[0] + 1)
+    labels = list(labels) if labels is not None else [f"member {i}" for i in k]
+    if len(labels) != len(k):
+        raise ValueError(f"labels must name the {len(k)} members; got {len(labels)}")
+    fig, (left, right) = plt.subplots(1, 2, figsize=(WIDTH, 3.6))
+    left.scatter(errors[0], errors[1], s=4, alpha=0.5, rasterized=True)
+    span = float(np.abs(errors[:2]).max())
+    left.plot([-span, span], [-span, span], color="0.3", linestyle="--", linewidth=1)
+    left.set_xlabel(f"{labels[0]}'s error")
+    left.set_ylabel(f"{labels[1]}'s error")
+    left.ticklabel_format(style="sci", scilimits=(-2, 2))
+    own = np.abs(errors).max(axis=1)
+    mean = np.array([np.abs(errors[:i].mean(axis=0)).max() for i in k])
+    right.plot(np.ones_like(own), own, "o", color="0.5", ms=4, label="each member")
+    right.plot(k, mean, "s-", ms=5, label="mean of the first k")
+    right.plot(k, own.mean() / np.sqrt(k), ":", color="0.3", label=r"independent: $1/\sqrt{k}$")
+    if goal is not None:
+        right.axhline(goal, color="k", linestyle="--", linewidth=0.8, label="goal")
+    right.set_yscale("log")
+    right.set_xticks(k)
+    right.set_xlabel("members averaged, k")
+    right.set_ylabel("largest error")
+    right.legend(fontsize="small")
+    for ax in (left, right):
+        ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return fig

@@ -57,6 +57,22 @@ def test_carried_error_draws_each_series_the_diagonal_and_the_goal():
         plots.carried_error(before, {"bad": before[:3]})
 
 
+def test_averaged_error_draws_the_members_the_mean_of_the_first_k_and_the_goal():
+    rng = np.random.default_rng(0)
+    errors = rng.normal(size=(4, 200)) * 1e-4
+    fig = plots.averaged_error(errors, goal=1e-4, labels=["a", "b", "c", "d"])
+    left, right = fig.axes
+    assert left.get_xlabel() == "a's error" and len(left.collections) == 1
+    each, mean, independent, goal = right.lines
+    assert list(each.get_ydata()) == list(np.abs(errors).max(axis=1))
+    assert mean.get_ydata()[-1] == np.abs(errors.mean(axis=0)).max() and goal.get_ydata()[0] == 1e-4
+    plt.close(fig)
+    with pytest.raises(ValueError, match="K >= 2 members"):
+        plots.averaged_error(errors[:1])
+    with pytest.raises(ValueError, match="name the 4 members"):
+        plots.averaged_error(errors, labels=["a"])
+
+
 def test_time_to_accuracy_draws_one_line_per_run_and_the_targets():
     fig = plots.time_to_accuracy(
         {"a": ([1.0, 5.0, 30.0], [1.0, 1e-2, 1e-5]), "b": ([8.0, 300.0], [0.5, 3e-2])}, targets={"paper": 1.5e-4}
