@@ -582,14 +582,14 @@ def carried_error(before, after: dict, goal: float | None = None, title: str = "
 
 
 def averaged_error(errors, goal: float | None = None, labels=None):
-    """What averaging independently trained solutions does to the largest error: left, two members' errors state
-    by state (uncorrelated errors fill the square, shared ones lie on the diagonal); right, the largest error of the
-    mean of the first k members against k, beside each member's own and what independent errors of equal size
-    would give (the members' mean largest error over the square root of k).
+    """What averaging independently trained solutions does to the largest error: left, every other member's errors
+    against the first's, state by state (uncorrelated errors fill the square, shared ones lie along the diagonal);
+    right, the largest error of the mean of the first k members against k, beside each member's own and what
+    independent errors of equal size would give (the members' mean largest error over the square root of k).
 
     * ``errors``: (K, N) each member's errors at the same N states (e.g. V - V* per max V*), K >= 2.
     * ``goal``: an error bound drawn as a dashed line on the right; None: none.
-    * ``labels``: K names of the members, the first two for the left axes; None: "member 1", ...
+    * ``labels``: K names of the members; None: "member 1", ...
     """
     errors = np.asarray(errors, dtype=float)
     if errors.ndim != 2 or errors.shape[0] < 2:
@@ -599,11 +599,13 @@ def averaged_error(errors, goal: float | None = None, labels=None):
     if len(labels) != len(k):
         raise ValueError(f"labels must name the {len(k)} members; got {len(labels)}")
     fig, (left, right) = plt.subplots(1, 2, figsize=(WIDTH, 3.6))
-    left.scatter(errors[0], errors[1], s=4, alpha=0.5, rasterized=True)
-    span = float(np.abs(errors[:2]).max())
+    for other, label in zip(errors[1:], labels[1:], strict=True):
+        left.scatter(errors[0], other, s=3, alpha=0.4, label=label, rasterized=True)
+    span = float(np.abs(errors).max())
     left.plot([-span, span], [-span, span], color="0.3", linestyle="--", linewidth=1)
     left.set_xlabel(f"{labels[0]}'s error")
-    left.set_ylabel(f"{labels[1]}'s error")
+    left.set_ylabel("another member's error")
+    left.legend(fontsize="small", markerscale=3)
     left.ticklabel_format(style="sci", scilimits=(-2, 2))
     own = np.abs(errors).max(axis=1)
     mean = np.array([np.abs(errors[:i].mean(axis=0)).max() for i in k])
