@@ -61,18 +61,14 @@ from _common import (  # benchmarks/_common.py, a sibling
 import pinnhjb as ph
 from pinnhjb.executor import map_runs
 from pinnhjb.metrics import infinite_horizon_residual
+from pinnhjb.paper import dimension_states
 from pinnhjb.pinn import gradient
 from pinnhjb.storage import provenance
 
 
-def _states(system, points: int, seed: int) -> torch.Tensor:
-    """``points`` seeded uniform states of Omega, float64: where the errors are measured."""
-    return system.sample(points, torch.Generator().manual_seed(seed), dtype=torch.float64, box=system.domain)
-
-
 def true_errors(system, sol, points: int, seed: int) -> dict:
     """max abs(V - V*) / max V* and the mean relative error of grad V over seeded uniform states of Omega."""
-    x = _states(system, points, seed)
+    x = dimension_states(system, points, seed)
     v_star, g_star = (t.detach() for t in gradient(system.value_star, x))
     v = torch.as_tensor(sol.value(x.numpy()))
     g = torch.as_tensor(sol.gradient(x.numpy()))
@@ -98,7 +94,7 @@ def horizon_floor(system, horizon: float, points: int, seed: int) -> float | Non
     if system.builder != "lq_ladder":
         return None
     A, B, Q = system.linearize()
-    return ph.lq.horizon_gap(A, B, Q, system.R, horizon, _states(system, points, seed).numpy())
+    return ph.lq.horizon_gap(A, B, Q, system.R, horizon, dimension_states(system, points, seed).numpy())
 
 
 BUILDERS = {  # (n, train_scale) -> the system; train_scale None: the builder's box (Omega enlarged 1.25x)
@@ -166,7 +162,7 @@ def run(task: dict) -> dict:
             sol = solver.extend(sol, to=sol.horizon + step)
     wall = before + time.perf_counter() - start - saving
     weights = sum(p.numel() for p in sol.stages[0].model.parameters())  # the first has no terminal network
-    x = _states(system, task["points"], task["seed"]).numpy()  # the states of true_errors, V* there
+    x = dimension_states(system, task["points"], task["seed"]).numpy()  # the states of true_errors, V* there
     v_star = system.value_star(torch.as_tensor(x)).detach().numpy()
     errors = [sol.truncated(k).value(x) - v_star for k in range(1, len(sol.stages) + 1)]
     chain = [  # each stage: its horizon, E, final training loss, the losses of the attempts not kept, true errors

@@ -27,7 +27,7 @@ import torch
 
 from .config import TrainConfig
 from .pinn import FiniteHorizonValue, QuadraticTerminalCost, SteadyStateValue, ValueTerminalCost, ZeroTerminalCost
-from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
+from .solution import AveragedSolution, FiniteHorizonSolution, Stage, SteadyStateSolution
 from .systems import fingerprint_difference, fingerprint_summary, get_system
 from .training import DTYPES, TrainHistory, resolve_device
 
@@ -129,7 +129,7 @@ def save(solution, path, **extra) -> Path:
     to :func:`load` again.
     """
     if not isinstance(solution, (FiniteHorizonSolution, SteadyStateSolution)):
-        members = " (save its members one by one)" if hasattr(solution, "members") else ""
+        members = " (save its members one by one)" if isinstance(solution, AveragedSolution) else ""
         raise TypeError(f"cannot save a {type(solution).__name__}{members}")
     path = Path(path)
     spec = solution.system.spec()

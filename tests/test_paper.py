@@ -295,3 +295,13 @@ def test_dimension_goals_take_the_closest_stored_run(tmp_path):
     # each names its system, as chapter 8 groups them
     assert [g.system for g in goals.values()] == ["rigid body"] * 7 + ["LQ ladder"] * 2 + ["converse system"]
     assert four.aim == r"$n=4$: value error $\leq10^{-4}$" and v.aim == r"value error $\leq10^{-3}$"
+
+
+def test_dimension_states_are_the_seeded_uniform_states_of_omega():
+    system = ph.systems.lq_ladder(2)
+    x = paper.dimension_states(system, 50, 3)
+    assert x.shape == (50, 4) and x.dtype == torch.float64
+    assert torch.equal(x, paper.dimension_states(system, 50, 3))  # the same seed, the same states
+    assert not torch.equal(x, paper.dimension_states(system, 50, 4))
+    lo, hi = (torch.as_tensor(system.domain[:, i]) for i in (0, 1))
+    assert bool(((x >= lo) & (x <= hi)).all())

@@ -7,6 +7,8 @@ import json
 import os
 from pathlib import Path
 
+import torch
+
 from ..storage import load
 from .cases import CASES, INF, Case
 from .evaluation import reference_grid_residual
@@ -26,6 +28,7 @@ __all__ = [
     "benchmark_run",
     "benchmark_runs",
     "dimension_rows",
+    "dimension_states",
     "benchmark_reference",
     "benchmark_reference_path",
 ]
@@ -211,6 +214,17 @@ def dimension_rows(record: dict, recipe: str = "default") -> dict[tuple[str, int
         for r in record["rows"]
         if r.get("recipe", "default") == recipe and r.get("value_rel_error") is not None
     }
+
+
+def dimension_states(system, points: int, seed: int) -> torch.Tensor:
+    """The states on which ``benchmarks/dimension.py`` measures a run's true errors: ``points`` seeded uniform
+    states of Omega, float64 on the CPU (a stored run's ``meta["points"]`` and ``meta["seed"]``).
+
+    * ``system``: the :class:`~pinnhjb.systems.ControlAffineSystem` (its ``domain`` is Omega).
+    * ``points``: how many states.
+    * ``seed``: the seed of their generator.
+    """
+    return system.sample(points, torch.Generator().manual_seed(seed), dtype=torch.float64, box=system.domain)
 
 
 def benchmark_reference_path(system: str, horizon: float, points: int | str, out: Path | None = None) -> Path:
