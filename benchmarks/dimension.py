@@ -123,6 +123,8 @@ def run(task: dict) -> dict:
       ``train_scale`` (the training box; None: the builder's), ``flat_origin`` (grad V(0, t) = 0 built into the
       ansatz, :class:`~pinnhjb.TrainConfig`), ``warm_start`` (True, False: each stage from fresh weights, or
       ``"best"``: both, the lower E kept; default True),
+      ``terminal`` (the first stage's terminal cost: ``"zero"``, the paper's, or ``"lqr"``, the linearisation's LQR
+      value x'Px; default zero),
       ``budget`` (how many of the largest errors get :func:`_common.loop_budget`; 0: none), ``save`` (a folder for
       the chain, written after every stage so that a run cut short keeps what it trained, with its wall time so
       far and the run's ``settings`` and ``machine``; or None), ``resume`` (a chain saved so, extended from its
@@ -149,7 +151,12 @@ def run(task: dict) -> dict:
     start, saving = time.perf_counter(), 0.0
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
-        sol = solver.solve(step) if resumed is None else solver.extend(resumed, to=resumed.horizon + step)
+        phi = system.lqr_value() if task.get("terminal", "zero") == "lqr" else None
+        sol = (
+            solver.solve(step, terminal_cost=phi)
+            if resumed is None
+            else solver.extend(resumed, to=resumed.horizon + step)
+        )
         zero = sol.metrics["E_zero"]
         while True:
             if path is not None:  # after every stage, so that a run cut short keeps the stages it trained
@@ -327,6 +334,7 @@ PAGE_KEYS = {  # what write_page reads from a run's meta (lm_points: from the co
     *("step", "converse_step", "ratio", "max_horizon", "points", "width", "retries", "loop_share", "train_scale"),
     *("flat_origin", "cold_start", "best_start"),
 }
+TERMINALS = {"zero": "0 (the paper's)", "lqr": "x'Px (the linearisation's LQR value)"}  # --terminal
 
 
 def _resumed_clause(meta: dict) -> str:
@@ -350,7 +358,8 @@ def write_page(record: dict, out: Path) -> list[str]:
         raise ValueError(f"the run was stored by an older dimension.py (its meta has no {', '.join(lacking)})")
     lm = next(phase for phase in meta["config"]["phases"] if phase["name"] == "lm")
     given = lm["points"] if lm["points"] != ph.TrainConfig.preset("default").phase("lm").points else None
-    a = argparse.Namespace(**{"lm_points": given, **meta})  # runs before lm_points was stored: from the config
+    # runs stored before lm_points: from the config; before terminal: the paper's zero
+    a = argparse.Namespace(**{"lm_points": given, "terminal": "zero", **meta})
     dx_version = f", DeepXDE {a.deepxde}" if a.deepxde else ""
     beside = f"{' and '.join(f'`{r}`' for r in a.against)} beside it at n = {','.join(map(str, a.compare))}"
     rule = lm_rule(a.config)  # the default recipe's LM stopping rule, when not the recipe's own
@@ -369,6 +378,7 @@ def write_page(record: dict, out: Path) -> list[str]:
         f"{f'{a.loop_share:.0%} of the training states along LQR loops (loop_share), ' if a.loop_share else ''}"
         f"trained on Omega enlarged {a.train_scale or 1.25:g}x, "
         f"{'grad V(0, t) = 0 built into the ansatz (flat_origin), ' if a.flat_origin else ''}"
+        f"{f'the first terminal cost {TERMINALS[a.terminal]}, ' if a.terminal != 'zero' else ''}"
         f"{'each stage from fresh weights (no warm start), ' if a.cold_start else ''}"
         f"{'each stage from the stage before and from fresh weights, the lower E kept, ' if a.best_start else ''}"
         f"{f'LM{rule}, ' if rule else ''}"
@@ -415,8 +425,9 @@ def write_page(record: dict, out: Path) -> list[str]:
 
 RESUME_SAME = (  # the settings a run carried on with --resume shares with the run that saved its chains
     *("seed", "threads", "step", "converse_step", "ratio", "points", "width", "retries", "loop_share"),
-    *("train_scale", "flat_origin", "budget_states", "lm_points", "config", "device"),
+    *("train_scale", "flat_origin", "budget_states", "lm_points", "config", "device", "terminal"),
 )
+RESUME_DEFAULTS = {"terminal": "zero"}  # settings added since: what a chain saved before them was trained with
 
 
 def _resumed(p, args, tasks: list[dict], settings: dict) -> list[str]:
@@ -436,7 +447,7 @@ def _resumed(p, args, tasks: list[dict], settings: dict) -> list[str]:
         stored = sol.provenance.get("settings")
         if stored is None or "wall_s" not in sol.provenance:
             p.error(f"--resume: {path} was saved without its settings and wall time (an older dimension.py)")
-        if differ := [key for key in RESUME_SAME if stored.get(key) != settings[key]]:
+        if differ := [key for key in RESUME_SAME if stored.get(key, RESUME_DEFAULTS.get(key)) != settings[key]]:
             p.error(f"--resume: {path} was trained with other settings: {', '.join(differ)}")
         if sol.horizon >= args.max_horizon - 1e-9:
             p.error(f"--resume: {path} ends at T = {sol.horizon:g}; raise --max-horizon ({args.max_horizon:g})")
@@ -495,6 +506,13 @@ def main(argv=None) -> int:
         action="store_true",
         help="the default recipe with grad V(0, t) = 0 built into the ansatz too (TrainConfig.flat_origin)",
     )
+    p.add_argument(
+        "--terminal",
+        choices=tuple(TERMINALS),
+        default="zero",
+        help="the default recipe's first terminal cost: 0 (the paper's), or x'Px, the linearisation's LQR value "
+        "(not on the LQ ladder, whose V* it is)",
+    )
     add_start_arguments(p, note="; the default recipe only")
     p.add_argument(
         "--save", action="store_true", help="store the default recipe's chains under OUT/chains/, after every stage"
@@ -549,6 +567,11 @@ def main(argv=None) -> int:
     }
     if any(n % 2 for ns in sizes.values() for n in ns):
         p.error("every n must be even (the ladder has n = 2k; the converse system m = n/2 inputs)")
+    if args.terminal == "lqr" and sizes["lq_ladder"]:
+        p.error(
+            "--terminal lqr: the LQ ladder's V* is its LQR value x'Px, so its chain would start at the answer; "
+            "use it with --ladder ''"
+        )
     if args.budget_states < 0:
         p.error(f"--budget-states must be >= 0; got {args.budget_states}")
     try:  # every system built once, with its training box, before any run
@@ -598,6 +621,7 @@ def main(argv=None) -> int:
             lm=lm[recipe],
             budget=args.budget_states if recipe == "default" else 0,
             flat_origin=args.flat_origin and recipe == "default",
+            terminal=args.terminal if recipe == "default" else "zero",
             warm_start=default_config.warm_start if recipe == "default" else True,
         )
         for name, ns in sizes.items()
@@ -622,6 +646,7 @@ def main(argv=None) -> int:
         "loop_share": args.loop_share,
         "train_scale": args.train_scale,
         "flat_origin": args.flat_origin,
+        "terminal": args.terminal,
         "cold_start": args.cold_start,
         "best_start": args.best_start,
         "lm_points": args.lm_points,

@@ -350,3 +350,39 @@ def test_dimension_resume_carries_a_saved_chain_on_as_one_run_would(tmp_path, ca
     assert carried["wall_s"] > half["wall_s"]
     page = (tmp_path / "carried" / "dimension.md").read_text()
     assert f"the chains of `{tmp_path / 'half'}` carried on" in page
+
+
+def test_dimension_terminal_lqr_starts_the_converse_chain_from_x_P_x(tmp_path, capsys):
+    """--terminal lqr gives the converse chain's first stage the linearisation's LQR value as its terminal cost
+    (stored with the chain, named on the page, kept by --resume); on the LQ ladder, whose V* that is, it is
+    refused before any run, and a chain saved before the option resumes as the zero terminal cost it had."""
+    import numpy as np
+
+    dimension = _module("dimension")
+    tiny = ["--ladder", "", "--converse", "2", "--compare", "", "--converse-step", "0.5", "--points", "256"]
+    tiny += ["--threads", "1", "--no-progress", "--lm-steps", "3", "--budget-states", "0"]
+    with pytest.raises(SystemExit):
+        dimension.main([*tiny, "--ladder", "2", "--terminal", "lqr", "--out", str(tmp_path / "bad")])
+    assert "start at the answer" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    dimension.main([*tiny, "--terminal", "lqr", "--max-horizon", "0.5", "--save", "--out", str(tmp_path / "lqr")])
+    sol = ph.load(tmp_path / "lqr" / "chains" / "converse-n2-default.pt")
+    x = torch.tensor([[0.3, -0.2], [0.0, 0.5]], dtype=torch.float64)
+    P = torch.as_tensor(sol.system.lqr_value())
+    np.testing.assert_allclose(sol.stages[0].model.terminal_cost(x).detach(), ((x @ P) * x).sum(-1), rtol=1e-12)
+    assert (
+        "the first terminal cost x'Px (the linearisation's LQR value)"
+        in (tmp_path / "lqr" / "dimension.md").read_text()
+    )
+    resume = ["--resume", str(tmp_path / "lqr"), "--max-horizon", "1"]
+    with pytest.raises(SystemExit):  # a chain from x'Px does not carry on as one from zero
+        dimension.main([*tiny, *resume, "--out", str(tmp_path / "bad")])
+    assert "other settings: terminal" in capsys.readouterr().err
+    dimension.main([*tiny, *resume, "--terminal", "lqr", "--out", str(tmp_path / "on")])
+    (row,) = json.loads((tmp_path / "on" / "dimension.json").read_text())["rows"]
+    assert row["T"] == 1.0 and row["stages"] == 2
+    dimension.main([*tiny, "--max-horizon", "0.5", "--save", "--out", str(tmp_path / "zero")])
+    chain = tmp_path / "zero" / "chains" / "converse-n2-default.pt"
+    stored = ph.load(chain)
+    stored.provenance["settings"].pop("terminal")  # as a chain saved before --terminal was
+    ph.save(stored, chain, **{k: v for k, v in stored.provenance.items() if k in ("wall_s", "settings", "machine")})
+    dimension.main([*tiny, "--resume", str(tmp_path / "zero"), "--max-horizon", "1", "--out", str(tmp_path / "z1")])
