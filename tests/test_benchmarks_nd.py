@@ -386,3 +386,5 @@ def test_dimension_terminal_lqr_starts_the_converse_chain_from_x_P_x(tmp_path, c
     stored.provenance["settings"].pop("terminal")  # as a chain saved before --terminal was
     ph.save(stored, chain, **{k: v for k, v in stored.provenance.items() if k in ("wall_s", "settings", "machine")})
     dimension.main([*tiny, "--resume", str(tmp_path / "zero"), "--max-horizon", "1", "--out", str(tmp_path / "z1")])
+    (row,) = json.loads((tmp_path / "z1" / "dimension.json").read_text())["rows"]
+    assert row["T"] == 1.0 and "first terminal cost" not in (tmp_path / "z1" / "dimension.md").read_text()
