@@ -14,6 +14,15 @@ from pinnhjb.executor import check
 from pinnhjb.optimizers import LevenbergMarquardt
 
 RESULTS = Path(__file__).resolve().parent / "results"
+TERMINALS = {"zero": "0 (the paper's)", "lqr": "x'Px (the linearisation's LQR value)"}  # a chain's first terminal cost
+
+
+def first_terminal_cost(system, name: str) -> np.ndarray | None:
+    """The first stage's terminal cost named ``name`` (a key of :data:`TERMINALS`), as ``solve`` takes it: None for
+    the paper's 0, the linearisation's LQR matrix P (``system.lqr_value()``, phi = x'Px) for ``"lqr"``."""
+    if name not in TERMINALS:
+        raise ValueError(f"unknown terminal cost {name!r}; choose from {', '.join(TERMINALS)}")
+    return system.lqr_value() if name == "lqr" else None
 
 
 def parse(parser: argparse.ArgumentParser, argv=None, device: bool = False) -> argparse.Namespace:

@@ -47,8 +47,10 @@ import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/
 import numpy as np
 import torch
 from _common import (  # benchmarks/_common.py, a sibling
+    TERMINALS,
     add_lm_arguments,
     add_start_arguments,
+    first_terminal_cost,
     lm_rule,
     lm_settings,
     loop_budget,
@@ -151,7 +153,7 @@ def run(task: dict) -> dict:
     start, saving = time.perf_counter(), 0.0
     with warnings.catch_warnings():  # a late stage can be no better than its terminal cost: that is convergence
         warnings.simplefilter("ignore", RuntimeWarning)
-        phi = system.lqr_value() if task.get("terminal", "zero") == "lqr" else None
+        phi = first_terminal_cost(system, task.get("terminal", "zero"))
         sol = (
             solver.solve(step, terminal_cost=phi)
             if resumed is None
@@ -334,7 +336,6 @@ PAGE_KEYS = {  # what write_page reads from a run's meta (lm_points: from the co
     *("step", "converse_step", "ratio", "max_horizon", "points", "width", "retries", "loop_share", "train_scale"),
     *("flat_origin", "cold_start", "best_start"),
 }
-TERMINALS = {"zero": "0 (the paper's)", "lqr": "x'Px (the linearisation's LQR value)"}  # --terminal
 
 
 def _resumed_clause(meta: dict) -> str:
@@ -358,8 +359,8 @@ def write_page(record: dict, out: Path) -> list[str]:
         raise ValueError(f"the run was stored by an older dimension.py (its meta has no {', '.join(lacking)})")
     lm = next(phase for phase in meta["config"]["phases"] if phase["name"] == "lm")
     given = lm["points"] if lm["points"] != ph.TrainConfig.preset("default").phase("lm").points else None
-    # runs stored before lm_points: from the config; before terminal: the paper's zero
-    a = argparse.Namespace(**{"lm_points": given, "terminal": "zero", **meta})
+    # runs stored before lm_points: from the config; before later settings: RESUME_DEFAULTS
+    a = argparse.Namespace(**{"lm_points": given, **RESUME_DEFAULTS, **meta})
     dx_version = f", DeepXDE {a.deepxde}" if a.deepxde else ""
     beside = f"{' and '.join(f'`{r}`' for r in a.against)} beside it at n = {','.join(map(str, a.compare))}"
     rule = lm_rule(a.config)  # the default recipe's LM stopping rule, when not the recipe's own

@@ -45,8 +45,10 @@ from pathlib import Path
 
 import numpy as np
 from _common import (  # benchmarks/_common.py, a sibling
+    TERMINALS,
     add_lm_arguments,
     add_start_arguments,
+    first_terminal_cost,
     lm_rule,
     lm_settings,
     loop_budget,
@@ -67,7 +69,6 @@ TERMINAL = 0.5 * np.eye(6)  # their terminal cost abs(v)^2/2 + abs(w)^2/2 as x'P
 FLAT = ", grad V(0, t) = 0 built into the ansatz (flat_origin)"
 COLD = ", each stage from fresh weights (no warm start)"
 BEST = ", each stage trained from the stage before's weights and from fresh ones, the lower E kept (warm_start='best')"
-TERMINALS = {"lqr": "x'Px (the linearisation's LQR value)", "zero": "0 (the paper's)"}
 POOL = ph.TrainConfig().pool_size  # the recipe's training states per stage
 
 
@@ -179,7 +180,7 @@ def main(argv=None) -> int:
     p.add_argument("--max-time", type=float, default=1800.0, help="stop extending after this many seconds")
     p.add_argument(
         "--terminal",
-        choices=("lqr", "zero"),
+        choices=tuple(TERMINALS),
         default="lqr",
         help="the first stage's terminal cost: x'Px, the linearisation's LQR value (default), or 0 (the paper's)",
     )
@@ -262,8 +263,7 @@ def main(argv=None) -> int:
     resume = _resumed(p, args, system, config) if args.resume is not None else None
     progress = not args.no_progress  # the arguments are checked: the work starts here
     ref_inf = reference(system, math.inf, args.reference_points, 0, progress, args.artifacts)
-    lqr = system.lqr_value()
-    terminal = lqr if args.terminal == "lqr" else None
+    terminal = first_terminal_cost(system, args.terminal)
 
     def until(sol, wall):
         return (
@@ -283,7 +283,8 @@ def main(argv=None) -> int:
     if args.ablation:  # what the terminal cost and the width do, on the small network
         small = ph.TrainConfig.preset("default")
         result["ablation"] = {}
-        for name, phi in (("zero", None), ("lqr", lqr)):
+        for name in ("zero", "lqr"):
+            phi = first_terminal_cost(system, name)
             print(f"ablation: 3 x {small.width}, terminal cost {name}", flush=True)
             _, rows_a, wall_a = chain(
                 system, small, args.seed, 2.0, phi, lambda s, w: s.horizon >= 8 - 1e-9, ref_inf, args
