@@ -104,8 +104,12 @@ class TrainConfig:
       1000 per attempt); the attempt with the lowest final training loss is kept. The first stage (the only one
       that starts from random weights, where a bad local minimum is likely) is always tried ``1 + retries``
       times; an extension stage is tried again only while its final loss is above ``retry_factor`` times the
-      previous stage's. 0: one attempt per stage. The rejected attempts are listed in ``Stage.rejected``.
-    * ``retry_factor``: the rise of the final training loss, against the previous stage's, that fails a stage.
+      loss ``retry_against`` names. 0: one attempt per stage. The rejected attempts are listed in ``Stage.rejected``.
+    * ``retry_factor``: the rise of the final training loss, against the loss ``retry_against`` names, that fails
+      a stage.
+    * ``retry_against``: ``"previous"``, the previous stage's final training loss; ``"best"``, the lowest final
+      training loss of any stage of the chain so far, which also catches a loss that creeps up stage after stage,
+      each rise below ``retry_factor`` (chapter 9, section 2).
 
     Reporting:
 
@@ -136,6 +140,7 @@ class TrainConfig:
     warm_start: bool | str = True
     retries: int = 0
     retry_factor: float = 10.0
+    retry_against: str = "previous"
     eval_points_per_dim: int | None = None
     log_every: int = 25
 
@@ -157,6 +162,7 @@ class TrainConfig:
                 "log_every": (integer(self.log_every, 1), "an integer >= 1"),
                 "retries": (integer(self.retries, 0), "an integer >= 0"),
                 "retry_factor": (real(self.retry_factor, 1), "a finite number >= 1"),
+                "retry_against": (self.retry_against in RETRY_AGAINST, " or ".join(map(repr, RETRY_AGAINST))),
                 "loop_share": (real(self.loop_share, 0) and self.loop_share < 1, "a number in [0, 1)"),
                 "loop_time": (real(self.loop_time, 0, low_open=True), "a number of seconds > 0"),
                 "loop_policy": (self.loop_policy in LOOP_POLICIES, " or ".join(map(repr, LOOP_POLICIES))),
@@ -314,7 +320,10 @@ def _refuse_flat_fields(changes: dict) -> None:
 
 
 #: Fields added after checkpoints were first stored: :meth:`TrainConfig.to_dict` writes them only when set.
-_ADDED_LATER = ("flat_origin", "retries", "retry_factor", "loop_share", "loop_time", "loop_policy")
+_ADDED_LATER = ("flat_origin", "retries", "retry_factor", "retry_against", "loop_share", "loop_time", "loop_policy")
+
+#: What an extension stage's final training loss is compared with (``TrainConfig.retry_against``).
+RETRY_AGAINST = ("previous", "best")
 
 #: The policies whose closed loops ``TrainConfig.loop_share`` draws training states along.
 LOOP_POLICIES = ("lqr", "terminal")

@@ -226,14 +226,15 @@ class FiniteHorizonSolver(_Solver):
         terminal,
         init: FiniteHorizonValue | None,
         index: int,
-        previous_loss=None,
+        base_loss=None,
         warm: bool = True,
     ) -> Stage:
         """Train stage ``index`` on [0, ``length``]; with ``config.retries``, try again with new seeds (see
         :class:`~pinnhjb.config.TrainConfig`) and keep the attempt with the lowest final loss.
 
         * ``init``: the previous stage's network (None for the first stage).
-        * ``previous_loss``: the previous stage's final training loss (None for the first stage).
+        * ``base_loss``: the final training loss a rise is measured from, as ``config.retry_against`` names
+          (:meth:`_base_loss`; None for the first stage).
         * ``warm``: start from ``init``'s weights; else from fresh ones.
         """
         cfg = self.config
@@ -241,7 +242,7 @@ class FiniteHorizonSolver(_Solver):
         for attempt in range(1 + cfg.retries):
             if attempts:
                 best = min(a.history.final_loss for a in attempts)
-                if previous_loss is not None and math.isfinite(best) and best <= cfg.retry_factor * previous_loss:
+                if base_loss is not None and math.isfinite(best) and best <= cfg.retry_factor * base_loss:
                     break  # an extension stage that did not fail
             seed = self.seed + index + 1000 * attempt
             torch.manual_seed(seed)
@@ -300,6 +301,15 @@ class FiniteHorizonSolver(_Solver):
             self._check_stage(sol.stages[-1], len(sol.stages))
         return sol
 
+    def _base_loss(self, chain: FiniteHorizonSolution) -> float:
+        """The final training loss the next stage's is compared with (``config.retry_against``): the last
+        stage's, or the lowest of the chain's finite ones (the last stage's if none is finite)."""
+        last = chain.stages[-1].history.final_loss
+        if self.config.retry_against == "previous":
+            return last
+        finite = [s.history.final_loss for s in chain.stages if math.isfinite(s.history.final_loss)]
+        return min(finite, default=last)
+
     def _extended(self, chain: FiniteHorizonSolution, end: float, terminal_spec: dict) -> FiniteHorizonSolution:
         """``chain`` with one more stage, trained on [0, ``end`` - T] with terminal cost V_T(., 0) and evaluated.
 
@@ -319,7 +329,7 @@ class FiniteHorizonSolver(_Solver):
                     terminal,
                     prev.model,
                     len(chain.stages),
-                    previous_loss=prev.history.final_loss,
+                    base_loss=self._base_loss(chain),
                     warm=warm,
                 )
                 tried.append((warm, self._evaluated(chain.stages, stage, terminal_spec, check=mode != "best")))

@@ -51,9 +51,23 @@ def test_dimension_rows_are_the_same_in_workers(tmp_path):
     assert row["chain"][-1]["value_rel_error"] == row["value_rel_error"]  # the last stage's is the row's
     assert 0 < row["horizon_floor"] < 1  # V_0.5 is far from V*, whatever the network
     dimension = _module("dimension")
-    for bad in (["--workers", "0"], ["--retries", "-1"], ["--loop-share", "1"], ["--min-progress", "0.5"]):
+    refused = (["--workers", "0"], ["--retries", "-1"], ["--loop-share", "1"], ["--min-progress", "0.5"])
+    refused += (["--retries", "1", "--retry-factor", "0.5"], ["--retry-against", "best"])
+    for bad in refused:
         with pytest.raises(SystemExit):  # refused before any run
             dimension.main([*tiny, "--out", str(tmp_path / "bad"), *bad])
+
+
+def test_dimension_retry_rule_reaches_the_config_and_the_page(tmp_path):
+    dimension = _module("dimension")
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "0.5"]
+    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3", "--out", str(tmp_path)]
+    dimension.main([*tiny, "--retries", "1", "--retry-factor", "3", "--retry-against", "best"])
+    record = json.loads((tmp_path / "dimension.json").read_text())
+    assert (record["meta"]["config"]["retry_factor"], record["meta"]["config"]["retry_against"]) == (3, "best")
+    assert len(record["rows"][0]["chain"][0]["rejected_losses"]) == 1  # the first stage: tried 1 + retries times
+    page = (tmp_path / "dimension.md").read_text()
+    assert "over 3x the chain's lowest stage loss (retry_factor, retry_against)" in page
 
 
 def test_dimension_lm_points_set_every_n_and_are_checked_before_any_run(tmp_path, capsys):

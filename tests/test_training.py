@@ -318,6 +318,7 @@ def test_steady_state_solver(pendulum):
         ("retries", 1.5),
         ("retry_factor", 0.5),
         ("retry_factor", float("nan")),
+        ("retry_against", "last"),
         ("loop_share", -0.1),
         ("loop_share", 1.0),
         ("loop_time", 0.0),
@@ -462,6 +463,23 @@ def test_extension_stage_is_retried_only_when_its_loss_rises(pendulum, monkeypat
     assert seeds == [1, 2, 1002]
     assert sol.stages[1].rejected == () and sol.stages[2].seed == 1002
     assert [a["final_loss"] for a in sol.stages[2].rejected] == [60 * loss]
+
+
+def test_retry_against_best_catches_a_loss_that_creeps_up(pendulum, monkeypatch, tmp_path):
+    base = solver(system=pendulum).solve(0.5)
+    loss = base.stages[0].history.final_loss
+    # each stage 4x the one before, below retry_factor = 10: "previous" never retries; "best" compares stage 3's
+    # 16 loss with the chain's lowest (stage 1's), fails it, and keeps its second attempt (2 loss)
+    seeds = scripted_losses(monkeypatch, [4 * loss, 16 * loss, 2 * loss])
+    sol = solver(system=pendulum, retries=1, retry_against="previous").extend(base, to=1.5, step=0.5)
+    assert seeds == [1, 2] and all(s.rejected == () for s in sol.stages)
+    monkeypatch.undo()
+    seeds = scripted_losses(monkeypatch, [4 * loss, 16 * loss, 2 * loss])
+    sol = solver(system=pendulum, retries=1, retry_against="best").extend(base, to=1.5, step=0.5)
+    assert seeds == [1, 2, 1002] and sol.stages[1].rejected == ()
+    assert sol.stages[2].seed == 1002 and [a["final_loss"] for a in sol.stages[2].rejected] == [16 * loss]
+    loaded = ph.load(ph.save(sol, tmp_path / "best.pt"), pendulum)
+    assert loaded.config.retry_against == "best"
 
 
 def test_rejected_attempts_are_saved_and_loaded(pendulum, monkeypatch, tmp_path):
