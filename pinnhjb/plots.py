@@ -33,8 +33,15 @@ __all__ = [
     "against_dimension",
     "carried_error",
     "averaged_error",
+    "goal_line",
+    "VALUE_ERROR",
+    "AFTER_STAGE",
 ]
 
+#: The chapters' value error, as an axis label.
+VALUE_ERROR = r"$\max|\hat V-V^\star|/\max V^\star$"
+#: The x-axis of a chain's stage-by-stage figures.
+AFTER_STAGE = "horizon $T$ after the stage (s)"
 CMAP = "viridis"
 DIVERGING = "RdBu_r"
 #: Inches: the widest figure the content column shows at full size (700 CSS px; one inch = 100 CSS px).
@@ -623,3 +630,29 @@ def averaged_error(errors, goal: float | None = None, labels=None):
         ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return fig
+
+
+def goal_line(ax, goal: float, label: str = "goal", color="k"):
+    """A dashed horizontal line at ``goal`` on ``ax``, named just above it at the left edge of the axes (where
+    the x-limits are). Returns the line.
+
+    * ``ax``: the axes.
+    * ``goal``: the height, in data units (e.g. an error bound); positive on a log axis.
+    * ``label``: the name written on the line; "" writes none.
+    * ``color``: the line's and the name's colour.
+    """
+    goal = float(goal)
+    if not math.isfinite(goal) or (ax.get_yscale() == "log" and goal <= 0):
+        raise ValueError(f"goal must be finite (and positive on a log axis); got {goal!r}")
+    line = ax.axhline(goal, color=color, lw=0.8, ls="--")
+    if label:
+        ax.annotate(
+            label,
+            (0, goal),
+            xycoords=("axes fraction", "data"),
+            xytext=(4, 3),
+            textcoords="offset points",
+            fontsize="small",
+            color=color,
+        )
+    return line

@@ -125,3 +125,19 @@ def test_loop_residual_shades_where_the_loops_leave_the_box():
     assert len(top.lines) >= 2 and len(top.collections) == 2  # a curve and a shading per loop
     assert bottom.get_xlim() == (0.0, 3.0) and bottom.get_xlabel() == "$t$ (s)"
     plt.close(fig)
+
+
+def test_goal_line_draws_the_bound_and_names_it_at_the_left_edge():
+    fig, ax = plt.subplots()
+    ax.semilogy([0, 10], [1e-2, 1e-5])
+    ax.set_xlim(2, 8)
+    line = plots.goal_line(ax, 1e-4, label="value goal", color="C1")
+    assert list(line.get_ydata()) == [1e-4, 1e-4]
+    (note,) = ax.texts
+    assert note.get_text() == "value goal" and note.xy == (0, 1e-4)  # axes fraction 0: wherever xlim is
+    assert note.get_color() == line.get_color() == "C1"
+    plots.goal_line(ax, 1e-3, label="")  # a line with no name
+    assert len(ax.lines) == 3 and len(ax.texts) == 1
+    with pytest.raises(ValueError, match="positive on a log axis"):
+        plots.goal_line(ax, 0.0)
+    plt.close(fig)
