@@ -34,7 +34,7 @@ def _module(name: str):
 def test_dimension_rows_are_the_same_in_workers(tmp_path):
     """As a script (its run function is pickled from __main__): serial and two worker processes, same rows."""
     tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "0.5"]
-    tiny += ["--points", "256", "--threads", "1", "--no-progress"]
+    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "5"]
     rows = {}
     for name, extra in (("serial", []), ("workers", ["--workers", "2"])):
         cmd = [sys.executable, str(BENCHMARKS / "dimension.py"), *tiny, "--out", str(tmp_path / name), *extra]
@@ -159,7 +159,8 @@ def test_dimension_deepxde_rows_say_when_it_is_missing(tmp_path):
     """DeepXDE beside the default at n = 2: a measured row where DeepXDE is installed (benchmarks/.venv), a row that
     says "not installed" where it is not (the project's environment); an unknown recipe is a usage error."""
     tiny = ["--ladder", "2", "--converse", "", "--compare", "2", "--against", "deepxde", "--step", "0.5"]
-    tiny += ["--max-horizon", "0.5", "--points", "256", "--threads", "1", "--no-progress", "--out", str(tmp_path)]
+    tiny += ["--max-horizon", "0.5", "--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "5"]
+    tiny += ["--out", str(tmp_path)]
     bad = subprocess.run(
         [sys.executable, str(BENCHMARKS / "dimension.py"), *tiny, "--against", "deepxde,lbfgs"],
         capture_output=True,
