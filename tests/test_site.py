@@ -22,7 +22,8 @@ The shell (theme, configuration, ``book/_ext``, ``book/_theme``):
 
 The content (chapters and theory pages):
 
-* no visible code input block (``div.cell_input pre``, ``div.highlight pre``) scrolls sideways;
+* no visible code input block (``div.cell_input pre``, ``div.highlight pre``) scrolls sideways, nor a printed
+  output but in a cell tagged ``keep-columns`` (aligned columns, which keep their lines);
 * every raster figure (``img`` in cell outputs, figures and explorer sliders) displays at >= 0.75 of its
   intended width, on the desktop and on a phone (where it scrolls sideways in its own box): its ``width``
   attribute when set (a 2x "retina" PNG carries width = natural / 2), else its inline style width in px (how
@@ -317,6 +318,22 @@ _CODE_SCROLLING = (
     % _IS_SHOWN
 )
 
+_OUTPUT_SCROLLING = (
+    """() => {
+    const shown = (%s);
+    // printed outputs, which wrap in their box (book/_theme/pinnhjb.css), but for cells tagged keep-columns
+    const outputs = Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'))
+        .filter(pre => !pre.closest('div.cell.tag_keep-columns'));
+    const cells = Array.from(document.querySelectorAll('div.cell'));
+    return outputs
+        .filter(pre => shown(pre) && pre.scrollWidth > pre.clientWidth + 1)
+        .map(pre => ({over: pre.scrollWidth - pre.clientWidth, width: pre.clientWidth,
+                      where: 'code cell ' + (cells.indexOf(pre.closest('div.cell')) + 1),
+                      line: pre.innerText.split('\\n')[0].trim().slice(0, 60)}));
+}"""
+    % _IS_SHOWN
+)
+
 _FIGURES = (
     """() => {
     const shown = (%s);
@@ -562,6 +579,11 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
             f"longest line ({c['chars']} chars): {c['line']!r}"
         )
 
+    for c in page.evaluate(_OUTPUT_SCROLLING):
+        found["outputs"].append(
+            f"{where}: the output of {c['where']} scrolls {c['over']} px in a {c['width']} px box: {c['line']!r}"
+        )
+
     text = page.evaluate(_VISIBLE_TEXT)
     for label, pattern in RAW_LABEL_PATTERNS.items():
         hits = sorted(set(pattern.findall(text["prose"]) + pattern.findall(text["outputs"])))
@@ -749,6 +771,10 @@ def test_screenshots_of_every_page(sweep):
 
 def test_code_fits_without_scrolling(sweep):
     _report(sweep, "code", "code input blocks that scroll sideways")
+
+
+def test_printed_outputs_wrap_in_their_box(sweep):
+    _report(sweep, "outputs", "printed outputs that scroll sideways (tag the cell keep-columns if they must)")
 
 
 def test_figures_display_near_their_intended_width(sweep):
