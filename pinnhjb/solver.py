@@ -42,9 +42,27 @@ from .pinn import (
 from .solution import FiniteHorizonSolution, Stage, SteadyStateSolution
 from .training import DTYPES, resolve_device, train_finite_horizon, train_steady_state
 
-__all__ = ["FiniteHorizonSolver", "SteadyStateSolver", "make_terminal_cost", "MAX_STAGES_PER_CALL"]
+__all__ = ["FiniteHorizonSolver", "SteadyStateSolver", "make_terminal_cost", "retry_base", "MAX_STAGES_PER_CALL"]
 
 MAX_STAGES_PER_CALL = 10000  # one extend() call; solve_until extends one stage at a time, so its chain is unbounded
+
+
+def retry_base(losses, against: str = "previous") -> float:
+    """The final training loss the next stage's is compared with (``TrainConfig.retry_against``), given the final
+    losses of a chain's stages so far, in order: the last one (``"previous"``) or the lowest finite one
+    (``"best"``; the last if none is finite). A stage is tried again when its loss exceeds ``retry_factor`` times it.
+
+    * ``losses``: the stages' final training losses (at least one).
+    * ``against``: ``"previous"`` or ``"best"``.
+    """
+    losses = [float(v) for v in losses]
+    if not losses:
+        raise ValueError("retry_base needs the final loss of at least one stage")
+    if against == "previous":
+        return losses[-1]
+    if against != "best":
+        raise ValueError(f"against must be 'previous' or 'best'; got {against!r}")
+    return min((v for v in losses if math.isfinite(v)), default=losses[-1])
 
 
 def _number(value, name: str, *, positive: bool = True, allow_inf: bool = False, expected: str = "") -> float:
@@ -302,13 +320,8 @@ class FiniteHorizonSolver(_Solver):
         return sol
 
     def _base_loss(self, chain: FiniteHorizonSolution) -> float:
-        """The final training loss the next stage's is compared with (``config.retry_against``): the last
-        stage's, or the lowest of the chain's finite ones (the last stage's if none is finite)."""
-        last = chain.stages[-1].history.final_loss
-        if self.config.retry_against == "previous":
-            return last
-        finite = [s.history.final_loss for s in chain.stages if math.isfinite(s.history.final_loss)]
-        return min(finite, default=last)
+        """The final training loss the next stage's is compared with: :func:`retry_base` of the chain's."""
+        return retry_base([s.history.final_loss for s in chain.stages], self.config.retry_against)
 
     def _extended(self, chain: FiniteHorizonSolution, end: float, terminal_spec: dict) -> FiniteHorizonSolution:
         """``chain`` with one more stage, trained on [0, ``end`` - T] with terminal cost V_T(., 0) and evaluated.

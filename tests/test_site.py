@@ -23,7 +23,7 @@ The shell (theme, configuration, ``book/_ext``, ``book/_theme``):
 The content (chapters and theory pages):
 
 * no visible code input block (``div.cell_input pre``, ``div.highlight pre``) scrolls sideways, nor a printed
-  output but in a cell tagged ``keep-columns`` (aligned columns, which keep their lines);
+  output (they wrap in their box);
 * every raster figure (``img`` in cell outputs, figures and explorer sliders) displays at >= 0.75 of its
   intended width, on the desktop and on a phone (where it scrolls sideways in its own box): its ``width``
   attribute when set (a 2x "retina" PNG carries width = natural / 2), else its inline style width in px (how
@@ -321,9 +321,8 @@ _CODE_SCROLLING = (
 _OUTPUT_SCROLLING = (
     """() => {
     const shown = (%s);
-    // printed outputs, which wrap in their box (book/_theme/pinnhjb.css), but for cells tagged keep-columns
-    const outputs = Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'))
-        .filter(pre => !pre.closest('div.cell.tag_keep-columns'));
+    // printed outputs, which wrap in their box (book/_theme/pinnhjb.css)
+    const outputs = Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'));
     const cells = Array.from(document.querySelectorAll('div.cell'));
     return outputs
         .filter(pre => shown(pre) && pre.scrollWidth > pre.clientWidth + 1)
@@ -774,7 +773,7 @@ def test_code_fits_without_scrolling(sweep):
 
 
 def test_printed_outputs_wrap_in_their_box(sweep):
-    _report(sweep, "outputs", "printed outputs that scroll sideways (tag the cell keep-columns if they must)")
+    _report(sweep, "outputs", "printed outputs that scroll sideways")
 
 
 def test_figures_display_near_their_intended_width(sweep):

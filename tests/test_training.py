@@ -465,6 +465,17 @@ def test_extension_stage_is_retried_only_when_its_loss_rises(pendulum, monkeypat
     assert [a["final_loss"] for a in sol.stages[2].rejected] == [60 * loss]
 
 
+def test_retry_base_is_the_previous_loss_or_the_lowest_finite_one():
+    losses = [4.0, 1.0, math.inf, 2.0]
+    assert ph.solver.retry_base(losses) == ph.solver.retry_base(losses, "previous") == 2.0
+    assert ph.solver.retry_base(losses, "best") == 1.0  # the inf is skipped
+    assert math.isnan(ph.solver.retry_base([math.nan], "best"))  # none finite: the last one
+    with pytest.raises(ValueError, match="at least one stage"):
+        ph.solver.retry_base([], "best")
+    with pytest.raises(ValueError, match="'previous' or 'best'"):
+        ph.solver.retry_base(losses, "worst")
+
+
 def test_retry_against_best_catches_a_loss_that_creeps_up(pendulum, monkeypatch, tmp_path):
     base = solver(system=pendulum).solve(0.5)
     loss = base.stages[0].history.final_loss
