@@ -23,11 +23,16 @@ its open-loop control (``replay_value`` = ``value``).
   but for the start of the stages trained here (``--cold-start``, ``--best-start``) and their LM iterations
   (``--lm-steps``); stage k trains with seed + k as in one uninterrupted run, and the page reports the stored and
   new stages and their wall time as one chain.
+* **The mean of chains.** ``--mean RUN RUN ...`` trains nothing: it checks the mean V = (1/K) sum_k V_k
+  (:class:`pinnhjb.AveragedSolution`) of the chains of K stored runs of one recipe from different seeds (each
+  chain from its run's ``--artifacts``, or ``--mean-chains``) as a run's last stage is checked, and writes it as a
+  run whose wall time is the members' training time, summed.
 * **Finite horizon (their setting).** T = 20 with terminal cost ``abs(v)^2/2 + abs(w)^2/2``, reached by extension in
   stages of ``--finite-step``; V_20(., 0) against its own reference.
 
     .venv/bin/python benchmarks/rigid_body.py
     .venv/bin/python benchmarks/rigid_body.py --width 24 --max-horizon 8 --skip-finite --out /tmp/rb
+    .venv/bin/python benchmarks/rigid_body.py --mean /tmp/rb /tmp/rb-seed1 --out /tmp/rb-mean
 
 Writes ``rigid_body.md`` and ``rigid_body.json`` (config, seed, versions, wall times) to ``benchmarks/results/``
 and the trained chains to ``artifacts/checkpoints/rigid_body_inf/`` and ``rigid_body_T20/`` (``--save``), which
@@ -45,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import (  # benchmarks/_common.py, a sibling
+    RESULTS,
     TERMINALS,
     add_lm_arguments,
     add_start_arguments,
@@ -235,7 +241,28 @@ def main(argv=None) -> int:
         "--max-horizon, with the same settings; the stages and wall time of both are reported as one chain",
     )
     p.add_argument("--resume-chain", type=Path, default=None, help="the chain --resume extends (default: the run's)")
+    p.add_argument(
+        "--mean",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="RUN",
+        help="train nothing: check the mean (ph.AveragedSolution) of the chains of two or more stored runs (their "
+        "--out folders) of one recipe from different seeds as a run is checked; its wall time is theirs, summed",
+    )
+    p.add_argument(
+        "--mean-chains",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="CHAIN",
+        help="the chains --mean averages, one per run, in order (default: each run's, under its --artifacts)",
+    )
     args = parse(p, argv, device=True)
+    if args.mean is not None:
+        return mean_main(p, args)
+    if args.mean_chains is not None:
+        p.error("--mean-chains goes with --mean")
     warm_start = warm_start_of(p, args)
     if args.budget_states < 1:
         p.error(f"--budget-states must be >= 1; got {args.budget_states}")
@@ -314,7 +341,7 @@ def main(argv=None) -> int:
         "seed": args.seed,
         "threads": args.threads,
         "machine": machine(args.device),
-        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "args": {k: _plain(v) for k, v in vars(args).items()},
         "config": config.to_dict(),
         "weights": sum(q.numel() for q in sol.stages[0].model.parameters()),
         "reference": {
@@ -330,7 +357,110 @@ def main(argv=None) -> int:
     return 0
 
 
+def _plain(value):
+    """An argument as JSON stores it: paths, and lists of them (``--mean``), as text."""
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return str(value) if isinstance(value, Path) else value
+
+
 SAME = ("seed", "step", "terminal", "train_scale", "flat_origin", "device", "threads")  # a resumed run keeps these
+MEAN_SAME = ("step", "terminal", "train_scale", "flat_origin", "device")  # the members of a mean share these
+
+
+def _members(p, args) -> tuple[object, list[dict], list[object]]:
+    """The stored runs ``--mean`` names, checked before any work: one recipe (the same training config and
+    settings but the seed), different seeds, each chain loaded and ending where its run did, all at one T."""
+    if len(args.mean) < 2:
+        p.error(f"--mean needs two or more stored runs; got {len(args.mean)}")
+    if args.mean_chains is not None and len(args.mean_chains) != len(args.mean):
+        p.error(f"--mean-chains: one chain per run of --mean ({len(args.mean)}); got {len(args.mean_chains)}")
+    if args.out.resolve() == RESULTS.resolve():
+        p.error(f"--mean: pass --out (a folder other than {RESULTS}, where the main run's page stays)")
+    runs = []
+    for folder in args.mean:
+        stored = folder / "rigid_body.json"
+        if not stored.exists():
+            p.error(f"--mean: no stored run at {stored}")
+        runs.append(json.loads(stored.read_text()))
+        if "members" in runs[-1]["infinite"]:
+            p.error(f"--mean: {folder} is itself a mean; name its members")
+    first, recipe = runs[0]["meta"], ph.TrainConfig.from_dict(runs[0]["meta"]["config"])
+    for folder, run in zip(args.mean[1:], runs[1:]):
+        differ = [k for k in MEAN_SAME if run["meta"]["args"].get(k) != first["args"].get(k)]
+        if ph.TrainConfig.from_dict(run["meta"]["config"]) != recipe:
+            differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
+        if differ:
+            p.error(f"--mean: {folder} differs from {args.mean[0]} in {', '.join(differ)}; a mean is of one recipe")
+    seeds = [run["meta"]["seed"] for run in runs]
+    if len(set(seeds)) < len(seeds):
+        p.error(f"--mean: the runs must differ in seed; got seeds {seeds}")
+    system = ph.systems.rigid_body(first["args"]["train_scale"])
+    chains = []
+    for i, (folder, run) in enumerate(zip(args.mean, runs)):
+        default = Path(run["meta"]["args"]["artifacts"]) / "checkpoints" / "rigid_body_inf" / f"seed{seeds[i]}.pt"
+        path = args.mean_chains[i] if args.mean_chains is not None else default
+        try:
+            sol = ph.load(path, system=system)
+        except (OSError, ValueError) as exc:
+            p.error(f"--mean: cannot load the chain {path}: {exc}")
+        end = run["infinite"]["stages"][-1]["T"]
+        if abs(sol.horizon - end) > 1e-9 or abs(sol.horizon - runs[0]["infinite"]["stages"][-1]["T"]) > 1e-9:
+            p.error(
+                f"--mean: the chain {path} ends at T = {sol.horizon:g}, its run {folder} at T = {end:g}; "
+                f"every chain must end where its run did, all at one T"
+            )
+        chains.append(sol)
+    return system, runs, chains
+
+
+def mean_main(p, args) -> int:
+    """``--mean``: the mean of stored chains, checked as :func:`main` checks a run's last stage (errors, E, closed
+    loop, loop budget); written as a run whose one row is the mean's and whose wall time is the members' sum."""
+    system, runs, chains = _members(p, args)
+    progress = not args.no_progress  # the arguments are checked: the work starts here
+    ref = reference(system, math.inf, args.reference_points, 0, progress, args.artifacts)
+    recipe = ph.TrainConfig.from_dict(runs[0]["meta"]["config"])
+    mean = ph.AveragedSolution(chains)
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ev = mean.evaluate(recipe.eval_points_per_dim)
+    wall = sum(run["infinite"]["wall_s"] for run in runs)
+    row = {"T": chains[0].horizon, "E_ratio": ev["E"] / ev["E_zero"], "wall_s": wall, "iterations": None}
+    row.update(stop_reason=f"mean of {len(chains)}", **errors(mean, ref))
+    print(f"  {row}", flush=True)
+    loop = closed_loop(system, mean, ref, args.closed_loop, args.t_final, args.dt)
+    print(f"  closed loop: {loop}", flush=True)
+    loops = budget(mean, ref, args.budget_states)
+    members = [
+        {
+            "run": str(folder),
+            "seed": run["meta"]["seed"],
+            "machine": run["meta"]["machine"],
+            "wall_s": run["infinite"]["wall_s"],
+            **{k: run["infinite"]["stages"][-1][k] for k in ("T", "E_ratio", "value_rel_error", "grad_mean_rel_error")},
+        }
+        for folder, run in zip(args.mean, runs)
+    ]
+    result = {"infinite": {"stages": [row], "wall_s": wall, "closed_loop": loop, "budget": loops, "members": members}}
+    args.device = runs[0]["meta"]["args"]["device"]  # where the members trained (the checks ran on the CPU)
+    meta = {
+        **provenance(),
+        "seed": [m["seed"] for m in members],
+        "threads": args.threads,
+        "machine": machine("cpu"),
+        "args": {k: _plain(v) for k, v in vars(args).items()},
+        "config": runs[0]["meta"]["config"],
+        "weights": sum(run["meta"]["weights"] for run in runs),
+        "reference": {"points": int(ref.converged.sum()), "wall_s": ref.wall_time, "replay_max_rel": ref.replay_error},
+        "check_wall_s": time.perf_counter() - start,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "rigid_body.json").write_text(json.dumps({"meta": meta, **result}))
+    (args.out / "rigid_body.md").write_text(mean_table(meta, result))
+    print(mean_table(meta, result))
+    return 0
 
 
 def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
@@ -339,6 +469,8 @@ def _resumed(p, args, system, config) -> tuple[object, list[dict]]:
     if not stored.exists():
         p.error(f"--resume: no stored run at {stored}")
     run = json.loads(stored.read_text())
+    if "members" in run["infinite"]:
+        p.error(f"--resume: {args.resume} is a mean of chains (--mean), not one chain to carry on")
     if not args.skip_finite or args.ablation:
         p.error("--resume extends the infinite-horizon chain only: pass --skip-finite, not --ablation")
     old, new = run["meta"]["args"], vars(args)
@@ -438,6 +570,61 @@ def _time_goal(wall: float, device: str) -> str:
     return f"| {what} | {wall:.0f} s | {'yes' if wall <= limit else 'no'} |"
 
 
+def _goal_lines(last: dict, loop: dict, wall: float, device: str) -> list[str]:
+    """The issue's goals for the rigid body, met or missed by a run's last row and closed loop, as a table."""
+    return [
+        "| goal (issue #18) | measured | met |",
+        "|---|---|---|",
+        f"| max abs(V - V_ref) / max V_ref <= 1e-3 | {last['value_rel_error']:.1e} | "
+        f"{'yes' if last['value_rel_error'] <= 1e-3 else 'no'} |",
+        f"| mean rel. error of grad V <= 1e-2 | {last['grad_mean_rel_error']:.1e} | "
+        f"{'yes' if last['grad_mean_rel_error'] <= 1e-2 else 'no'} |",
+        f"| all {loop['states']} closed loops settle | {loop['settled']} | "
+        f"{'yes' if loop['settled'] == loop['states'] else 'no'} |",
+        f"| closed-loop cost within 0.1% of V_ref | max {loop['cost_ratio_max']:.4f} | "
+        f"{'yes' if loop['cost_ratio_max'] <= 1.001 else 'no'} |",
+        _time_goal(wall, device),
+    ]
+
+
+def mean_table(meta: dict, result: dict) -> str:
+    """The page of a ``--mean`` run: its members, the mean's errors and closed loop, and the goals."""
+    inf = result["infinite"]
+    row, loop, members = inf["stages"][-1], inf["closed_loop"], inf["members"]
+    lines = [
+        "# The 6-D rigid body: the mean of chains (generated by `benchmarks/rigid_body.py --mean`; do not edit)",
+        "",
+        f"The mean V = (1/K) sum_k V_k (`ph.AveragedSolution`) of the K = {len(members)} chains below, one recipe "
+        f"from seeds {', '.join(str(m['seed']) for m in members)}, each trained by its own stored run (its page "
+        f"gives the recipe); nothing is trained here. Its wall time is the members' training time, summed (each on "
+        f"its own machine). Checked on {meta['machine']} in {meta['check_wall_s']:.0f} s; torch {meta['torch']}; "
+        f"created {meta['created']}. Reference: {meta['reference']['points']} converged Pontryagin BVPs at seeded "
+        "uniform states of Omega.",
+        *([meta["args"]["note"]] if meta["args"].get("note") else []),
+        "",
+        "| chain | seed | machine | T | E / E(V = 0) | max abs(V - V_ref) / max V_ref | mean rel. error of grad V "
+        "| wall s |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for m in members:
+        lines.append(
+            f"| `{m['run']}` | {m['seed']} | {m['machine']} | {m['T']:g} | {m['E_ratio']:.1e} | "
+            f"{m['value_rel_error']:.2e} | {m['grad_mean_rel_error']:.1e} | {m['wall_s']:.0f} |"
+        )
+    lines += [
+        f"| the mean | | | {row['T']:g} | {row['E_ratio']:.1e} | {row['value_rel_error']:.2e} | "
+        f"{row['grad_mean_rel_error']:.1e} | {row['wall_s']:.0f} (sum) |",
+        "",
+        f"Closed loop of the mean's policy from {loop['states']} reference states (RK4, dt {loop['dt']:g}, to "
+        f"t = {loop['t_final']:g}, then the LQR tail): {loop['settled']} of {loop['states']} settle (norm of "
+        f"x(t_final) < 1e-3); cost / V_ref: mean {loop['cost_ratio_mean']:.4f}, max {loop['cost_ratio_max']:.4f}.",
+        "",
+        *_budget_lines(inf.get("budget")),
+        *_goal_lines(row, loop, inf["wall_s"], meta["args"]["device"]),
+    ]
+    return "\n".join(lines) + "\n"
+
+
 def _start(args) -> str:
     """How the stages trained here started, for the page's header."""
     start = BEST if args.best_start else COLD if args.cold_start else ""
@@ -490,17 +677,7 @@ def table(meta: dict, result: dict, args) -> str:
         f"x(t_final) < 1e-3); cost / V_ref: mean {loop['cost_ratio_mean']:.4f}, max {loop['cost_ratio_max']:.4f}.",
         "",
         *_budget_lines(inf.get("budget")),
-        "| goal (issue #18) | measured | met |",
-        "|---|---|---|",
-        f"| max abs(V - V_ref) / max V_ref <= 1e-3 | {last['value_rel_error']:.1e} | "
-        f"{'yes' if last['value_rel_error'] <= 1e-3 else 'no'} |",
-        f"| mean rel. error of grad V <= 1e-2 | {last['grad_mean_rel_error']:.1e} | "
-        f"{'yes' if last['grad_mean_rel_error'] <= 1e-2 else 'no'} |",
-        f"| all {loop['states']} closed loops settle | {loop['settled']} | "
-        f"{'yes' if loop['settled'] == loop['states'] else 'no'} |",
-        f"| closed-loop cost within 0.1% of V_ref | max {loop['cost_ratio_max']:.4f} | "
-        f"{'yes' if loop['cost_ratio_max'] <= 1.001 else 'no'} |",
-        _time_goal(inf["wall_s"], args.device),
+        *_goal_lines(last, loop, inf["wall_s"], args.device),
     ]
     if "ablation" in result:
         lines += [

@@ -295,6 +295,17 @@ def test_dimension_goals_take_the_closest_stored_run(tmp_path):
     # each names its system, as chapter 8 groups them
     assert [g.system for g in goals.values()] == ["rigid body"] * 7 + ["LQ ladder"] * 2 + ["converse system"]
     assert four.aim == r"$n=4$: value error $\leq10^{-4}$" and v.aim == r"value error $\leq10^{-3}$"
+    assert v.note == ""  # one chain
+    # a mean of chains (benchmarks/rigid_body.py --mean) is a run too, and the goals say so
+    mean = _rigid(8e-4, 2e-3, 3000.0)
+    mean["infinite"]["members"] = [{"seed": 0}, {"seed": 1}]
+    (results / "repeats" / "mean").mkdir()
+    (results / "repeats" / "mean" / "rigid_body.json").write_text(json.dumps(mean))
+    goals = {g.key: g for g in paper.dimension_goals(out)}
+    v = goals["value error"]
+    assert (v.closest, v.run, v.met) == (8e-4, "repeats/mean", True)
+    assert v.show() == "8.00e-04 (the mean of 2 chains, 3000 s of training summed)"
+    assert goals["value error within 30 min"].run == "repeats/quick"  # its time is its members' summed
 
 
 def test_dimension_states_are_the_seeded_uniform_states_of_omega():
