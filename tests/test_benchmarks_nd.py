@@ -342,6 +342,9 @@ def test_cuda_script_is_valid_and_calls_what_exists():
         ).stdout
         for name in ("rigid_body", "dimension")
     }
+    for option in ("--mean", "--seed", "--save", "--artifacts", "--closed-loop", "--budget-states"):
+        assert option in text and option in helps["rigid_body"]
+    assert (root / "artifacts" / "reference" / "rigid_body_inf_1000.npz").exists()  # the mean part copies it
     for option in ("--device", "--skip-finite", "--note", "--out", "--no-progress", "--width", "--points"):
         assert option in helps["rigid_body"]
     for option in ("--min-progress", "--lm-steps", "--train-scale", "--max-time", "--closed-loop", "--t-final"):
@@ -356,11 +359,14 @@ def test_cuda_script_checks_its_parts_and_skips_long_runs_after_a_failed_tiny_on
     env = {**os.environ, "OUT": str(tmp_path), "PYTHON": sys.executable}
     bad = subprocess.run(["bash", script, "rigid", "gpu"], capture_output=True, text=True, env=env)
     assert bad.returncode == 2 and "unknown part 'gpu'" in bad.stderr and not (tmp_path / "log.txt").exists()
-    # no CUDA here: the tiny rigid-body run is a usage error, and neither long rigid-body run starts
-    subprocess.run(["bash", script, "rigid", "best"], capture_output=True, text=True, env=env, cwd=BENCHMARKS.parent)
+    # no CUDA here: the tiny rigid-body run is a usage error, and no long rigid-body run starts
+    subprocess.run(
+        ["bash", script, "rigid", "best", "mean"], capture_output=True, text=True, env=env, cwd=BENCHMARKS.parent
+    )
     log = (tmp_path / "log.txt").read_text()
     assert log.count("benchmarks/rigid_body.py") == 1 and "--lm-steps 5" in log
     assert "CUDA is not available" in log and not (tmp_path / "rigid_body").exists()
+    assert not list(tmp_path.glob("rigid_body_best*"))
 
 
 def test_dimension_save_keeps_every_stage_of_a_run_cut_short(tmp_path, monkeypatch):
