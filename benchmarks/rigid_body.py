@@ -400,8 +400,8 @@ def _members(p, args) -> tuple[object, list[dict], list[object]]:
     for i, (folder, run) in enumerate(zip(args.mean, runs)):
         default = Path(run["meta"]["args"]["artifacts"]) / "checkpoints" / "rigid_body_inf" / f"seed{seeds[i]}.pt"
         path = args.mean_chains[i] if args.mean_chains is not None else default
-        try:
-            sol = ph.load(path, system=system)
+        try:  # on the CPU, where the checks run (step by step on a small batch: a GPU only waits there)
+            sol = ph.load(path, system=system, device="cpu")
         except (OSError, ValueError) as exc:
             p.error(f"--mean: cannot load the chain {path}: {exc}")
         end = run["infinite"]["stages"][-1]["T"]
