@@ -366,6 +366,9 @@ def _plain(value):
 
 SAME = ("seed", "step", "terminal", "train_scale", "flat_origin", "device", "threads")  # a resumed run keeps these
 MEAN_SAME = ("step", "terminal", "train_scale", "flat_origin", "device")  # the members of a mean share these
+# what a mean takes beside --mean: the checks' settings and where things are (none of the training's)
+MEAN_OPTIONS = {"mean", "mean_chains", "reference_points", "closed_loop", "t_final", "dt", "budget_states"}
+MEAN_OPTIONS |= {"artifacts", "note", "threads", "out", "no_progress"}
 
 
 def _members(p, args) -> tuple[object, list[dict], list[object]]:
@@ -373,6 +376,10 @@ def _members(p, args) -> tuple[object, list[dict], list[object]]:
     settings but the seed), different seeds, each chain loaded and ending where its run did, all at one T."""
     if len(args.mean) < 2:
         p.error(f"--mean needs two or more stored runs; got {len(args.mean)}")
+    training = sorted(k for k, v in vars(args).items() if k not in MEAN_OPTIONS and v != p.get_default(k))
+    if training:
+        flags = ", ".join("--" + k.replace("_", "-") for k in training)
+        p.error(f"--mean trains nothing: {flags} would be ignored; its members' runs set them")
     if args.mean_chains is not None and len(args.mean_chains) != len(args.mean):
         p.error(f"--mean-chains: one chain per run of --mean ({len(args.mean)}); got {len(args.mean_chains)}")
     if args.out.resolve() == RESULTS.resolve():

@@ -288,6 +288,7 @@ def test_rigid_body_mean_checks_the_mean_of_stored_chains_as_a_run(tmp_path, cap
         (["--mean", runs[0], str(tmp_path / "mean")], "is itself a mean"),
         (["--mean", runs[0], str(tmp_path / "nowhere")], "no stored run at"),
         (["--mean", *runs, "--mean-chains", "a.pt"], "one chain per run"),
+        (["--mean", *runs, "--width", "9", "--skip-finite"], "--skip-finite, --width would be ignored"),
     ]
     for extra, message in bad:
         with pytest.raises(SystemExit):
