@@ -410,7 +410,7 @@ def _members(p, args) -> tuple[object, list[dict], list[object]]:
         try:  # on the CPU, where the checks run (step by step on a small batch: a GPU only waits there)
             sol = ph.load(path, system=system, device="cpu")
         except (OSError, ValueError) as exc:
-            p.error(f"--mean: cannot load the chain {path}: {exc}")
+            p.error(f"--mean: cannot load the chain {path} (--mean-chains names the chains): {exc}")
         end = run["infinite"]["stages"][-1]["T"]
         if abs(sol.horizon - end) > 1e-9 or abs(sol.horizon - runs[0]["infinite"]["stages"][-1]["T"]) > 1e-9:
             p.error(
