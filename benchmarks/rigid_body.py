@@ -577,6 +577,15 @@ def _time_goal(wall: float, device: str) -> str:
     return f"| {what} | {wall:.0f} s | {'yes' if wall <= limit else 'no'} |"
 
 
+def _loop_line(loop: dict, whose: str) -> str:
+    """The closed-loop check of ``whose`` policy (``closed_loop``'s dict) as a sentence of the page."""
+    return (
+        f"Closed loop of {whose} policy from {loop['states']} reference states (RK4, dt {loop['dt']:g}, to "
+        f"t = {loop['t_final']:g}, then the LQR tail): {loop['settled']} of {loop['states']} settle (norm of "
+        f"x(t_final) < 1e-3); cost / V_ref: mean {loop['cost_ratio_mean']:.4f}, max {loop['cost_ratio_max']:.4f}."
+    )
+
+
 def _goal_lines(last: dict, loop: dict, wall: float, device: str) -> list[str]:
     """The issue's goals for the rigid body, met or missed by a run's last row and closed loop, as a table."""
     return [
@@ -622,9 +631,7 @@ def mean_table(meta: dict, result: dict) -> str:
         f"| the mean | | | {row['T']:g} | {row['E_ratio']:.1e} | {row['value_rel_error']:.2e} | "
         f"{row['grad_mean_rel_error']:.1e} | {row['wall_s']:.0f} (sum) |",
         "",
-        f"Closed loop of the mean's policy from {loop['states']} reference states (RK4, dt {loop['dt']:g}, to "
-        f"t = {loop['t_final']:g}, then the LQR tail): {loop['settled']} of {loop['states']} settle (norm of "
-        f"x(t_final) < 1e-3); cost / V_ref: mean {loop['cost_ratio_mean']:.4f}, max {loop['cost_ratio_max']:.4f}.",
+        _loop_line(loop, "the mean's"),
         "",
         *_budget_lines(inf.get("budget")),
         *_goal_lines(row, loop, inf["wall_s"], meta["args"]["device"]),
@@ -679,9 +686,7 @@ def table(meta: dict, result: dict, args) -> str:
         )
     lines += [
         "",
-        f"Closed loop of the last stage's policy from {loop['states']} reference states (RK4, dt {loop['dt']:g}, to "
-        f"t = {loop['t_final']:g}, then the LQR tail): {loop['settled']} of {loop['states']} settle (norm of "
-        f"x(t_final) < 1e-3); cost / V_ref: mean {loop['cost_ratio_mean']:.4f}, max {loop['cost_ratio_max']:.4f}.",
+        _loop_line(loop, "the last stage's"),
         "",
         *_budget_lines(inf.get("budget")),
         *_goal_lines(last, loop, inf["wall_s"], args.device),

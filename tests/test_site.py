@@ -297,12 +297,13 @@ _VISIBLE_TEXT = (
     % _IS_SHOWN
 )
 
-_CODE_SCROLLING = (
-    """() => {
+
+def _scrolling(blocks: str) -> str:
+    """JavaScript that returns the shown ``<pre>`` boxes among ``blocks`` (a JavaScript expression giving an array
+    of them) wider than their box: by how much, the box's width, which cell (or block) and its longest line."""
+    return """() => {
     const shown = (%s);
-    // code the reader is meant to read: cell inputs and code blocks of the text, not printed outputs
-    const blocks = Array.from(document.querySelectorAll('div.cell_input pre, div.highlight pre'))
-        .filter(pre => !pre.closest('.cell_output, .output'));
+    const blocks = %s;
     const cells = Array.from(document.querySelectorAll('div.cell'));
     return blocks
         .filter(pre => shown(pre) && pre.scrollWidth > pre.clientWidth + 1)
@@ -314,23 +315,17 @@ _CODE_SCROLLING = (
             return {over: pre.scrollWidth - pre.clientWidth, width: pre.clientWidth, where,
                     line: longest.trim().slice(0, 60), chars: longest.length};
         });
-}"""
-    % _IS_SHOWN
-)
+}""" % (_IS_SHOWN, blocks)
 
-_OUTPUT_SCROLLING = (
-    """() => {
-    const shown = (%s);
-    // printed outputs, which wrap in their box (book/_theme/pinnhjb.css)
-    const outputs = Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'));
-    const cells = Array.from(document.querySelectorAll('div.cell'));
-    return outputs
-        .filter(pre => shown(pre) && pre.scrollWidth > pre.clientWidth + 1)
-        .map(pre => ({over: pre.scrollWidth - pre.clientWidth, width: pre.clientWidth,
-                      where: 'code cell ' + (cells.indexOf(pre.closest('div.cell')) + 1),
-                      line: pre.innerText.split('\\n')[0].trim().slice(0, 60)}));
-}"""
-    % _IS_SHOWN
+
+# code the reader is meant to read: cell inputs and code blocks of the text, not printed outputs
+_CODE_SCROLLING = _scrolling(
+    "Array.from(document.querySelectorAll('div.cell_input pre, div.highlight pre'))"
+    ".filter(pre => !pre.closest('.cell_output, .output'))"
+)
+# printed outputs, which wrap in their box (book/_theme/pinnhjb.css)
+_OUTPUT_SCROLLING = _scrolling(
+    "Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'))"
 )
 
 _FIGURES = (
