@@ -11,7 +11,7 @@
 #   ladder the LQ ladder at n = 2, 4, 8, 12, 16 on the GPU (dimension.py --device cuda; about 1 minute);
 #   mean   the best setting from seeds 0 and 1, chains saved (their closed-loop checks cut to one state), then
 #          their mean checked as a run (rigid_body.py --mean), whose time is the two chains' summed: on two CPU
-#          cores the mean of two seeds met the value goal (chapter 9, section 8); this asks whether it does
+#          cores the mean of two seeds met the value goal (chapter 10, section 5); this asks whether it does
 #          within the GPU's three minutes (about 6 minutes; not yet run).
 # Each part has its own time limit; a failed tiny run skips the long runs of its script. All output goes to a log.
 #

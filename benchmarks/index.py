@@ -166,7 +166,7 @@ def render(results: Path = RESULTS) -> str:
         "`dimension.py` (one row per system and n; errors against the exact V*) and `rigid_body.py` (against the",
         "stored BVP reference), the results page for the others. Wall times are each run's own, on the machine",
         "named; compare them only between runs on the same machine. A run resumed from another (`--resume`) counts",
-        "the stages it resumed in its wall time, trained where that run was. What the runs show: chapters 8 and 9",
+        "the stages it resumed in its wall time, trained where that run was. What the runs show: chapters 8 to 10",
         "of the book and `benchmarks/README.md`.",
     ]
     out += _goals(results)

@@ -97,7 +97,7 @@ class TrainConfig:
     * ``warm_start``: initialise each extension stage from the previous stage's weights. A warm stage can keep its
       terminal cost's error where it was instead of handing it on along the optimal loops as Theorem 3's exact
       stage does. From fresh weights (False) it does not, but each stage fits its whole correction again and can
-      fit it worse (chapter 9, section 4). ``"best"``: train each extension stage both ways on the same points
+      fit it worse (chapter 9, section 3). ``"best"``: train each extension stage both ways on the same points
       and keep the one with the lower E (the metrics' ``"E"``, the paper's own check, no reference needed); twice
       the training, and the attempt not kept is listed, with its metrics, in ``Stage.rejected``.
     * ``retries``: extra attempts at a stage whose training failed, each with a new seed (the stage's seed +
@@ -109,7 +109,7 @@ class TrainConfig:
       a stage.
     * ``retry_against``: ``"previous"``, the previous stage's final training loss; ``"best"``, the lowest final
       training loss of any stage of the chain so far, which also catches a loss that creeps up stage after stage,
-      each rise below ``retry_factor`` (chapter 9, section 2).
+      each rise below ``retry_factor`` (chapter 9, section 1).
 
     Reporting:
 

@@ -4,6 +4,7 @@ Every committed checkpoint is re-evaluated: its stored E must still come out of 
 artifact (trained by older code, or edited by hand) fails here.
 """
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -195,7 +196,7 @@ def test_the_core_knows_nothing_of_the_paper():
 
 
 def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
-    """The loaders chapters 8 and 9 call: a stored run (main, a repeat, a GPU run) and the reference with the most
+    """The loaders chapters 8 to 10 call: a stored run (main, a repeat, a GPU run) and the reference with the most
     states; what is missing is a FileNotFoundError naming where it was looked for."""
     out = tmp_path / "artifacts"
     results = tmp_path / "benchmarks" / "results"
@@ -246,6 +247,24 @@ def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
     got = paper.benchmark_reference("rigid_body", out=out)
     assert np.array_equal(got.value, stored.value, equal_nan=True)
     assert paper.benchmark_reference("rigid_body", 20.0, out=out).horizon == stored.horizon
+
+
+def test_run_config_leaves_out_named_settings_and_refuses_a_name_that_is_not_one():
+    """``paper.run_config``: two stored runs that differ in one setting compare equal without it; a run stored
+    before a setting existed lacks it and is compared without it; a name that is not a TrainConfig field (a
+    misspelling, or the seed, kept in ``meta``) is a KeyError rather than a comparison that drops nothing."""
+    config = dataclasses.asdict(ph.TrainConfig())
+    older = {key: value for key, value in config.items() if key != "flat_origin"}
+    run = {"meta": {"config": config, "seed": 0}}
+    other = {"meta": {"config": {**config, "warm_start": "best"}, "seed": 1}}
+    assert paper.run_config(run) == config and paper.run_config(run) is not config
+    assert paper.run_config(run) != paper.run_config(other)
+    assert paper.run_config(run, "warm_start") == paper.run_config(other, "warm_start")
+    assert "warm_start" not in paper.run_config(run, "warm_start")
+    assert paper.run_config({"meta": {"config": older}}, "flat_origin") == paper.run_config(run, "flat_origin")
+    for wrong in ("seed", "warm_starts"):
+        with pytest.raises(KeyError, match=wrong):
+            paper.run_config(run, "width", wrong)
 
 
 def _rigid(value, grad, wall, device="cpu", settled=100):

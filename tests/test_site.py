@@ -146,7 +146,7 @@ SHOT_TILE = 8000  # CSS px; one full-page capture much taller than this comes ba
 
 def _full_page_shot(page, path: Path) -> None:
     """The whole page as one PNG at ``path``. Chromium leaves the text of a very tall full-page capture blank
-    (chapter 9 is over 35000 px), so a tall page is captured in clips of ``SHOT_TILE`` px and stitched."""
+    (chapter 8 is over 35000 px), so a tall page is captured in clips of ``SHOT_TILE`` px and stitched."""
     height = page.evaluate("() => document.documentElement.scrollHeight")
     if height <= SHOT_TILE:
         page.screenshot(path=str(path), full_page=True)

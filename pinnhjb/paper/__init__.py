@@ -27,6 +27,7 @@ from .artifacts import (
     reference_path,
     reference_residual,
     results_dir,
+    run_config,
     stage_metric,
     stored_seeds,
 )
@@ -52,6 +53,7 @@ __all__ = [
     "results_dir",
     "benchmark_run",
     "benchmark_runs",
+    "run_config",
     "dimension_rows",
     "dimension_states",
     "benchmark_reference",

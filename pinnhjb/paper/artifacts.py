@@ -1,14 +1,16 @@
 """Where the reproduction's artifacts live, and the loaders the chapters call: stored solutions per case and
-seed, the reference grids, the results table, and the benchmarks' stored runs that chapters 8 and 9 read."""
+seed, the reference grids, the results table, and the benchmarks' stored runs that chapters 8 to 10 read."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
 
 import torch
 
+from ..config import TrainConfig
 from ..storage import load
 from .cases import CASES, INF, Case
 from .evaluation import reference_grid_residual
@@ -181,6 +183,23 @@ def benchmark_run(
     if not path.is_file():
         raise FileNotFoundError(f"no stored benchmark run at {path}")
     return json.loads(path.read_text())
+
+
+def run_config(run: dict, *leave_out: str) -> dict:
+    """A stored benchmark run's training config (``meta["config"]``, a :class:`~pinnhjb.TrainConfig` as a dict)
+    without the settings in ``leave_out``: two runs that differ in those settings alone have equal
+    ``run_config(a, *keys) == run_config(b, *keys)``.
+
+    * ``run``: the run, as :func:`benchmark_run` reads it.
+    * ``leave_out``: ``TrainConfig`` field names to drop, e.g. ``"warm_start"``; a run stored before a field
+      existed lacks it, and is compared without it. A name that is not a field (a misspelling, or a setting
+      kept outside the config such as the seed) is a KeyError: it would leave the comparison unchanged.
+    """
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = [key for key in leave_out if key not in fields]
+    if unknown:
+        raise KeyError(f"{unknown} not TrainConfig field(s); a run's config holds only those: {sorted(fields)}")
+    return {key: value for key, value in run["meta"]["config"].items() if key not in leave_out}
 
 
 def benchmark_runs(name: str = "rigid_body", out: Path | None = None) -> dict[str, dict]:
