@@ -423,8 +423,8 @@ class AveragedSolution(_ValueSolution):
     """The mean of solutions of one system trained independently (other seeds): V = (1/K) sum_k V_k, and so
     grad V and the policy mu = -1/2 R^{-1} g' grad V :eq:`eq-muhat` are the members' means too. Where part of each
     member's error is its own (its points and its first weights) rather than the recipe's, the mean is closer to
-    V* than a typical member, if not always than the best; chapter 9 (section 3) measures by how much. Checkpoints
-    store the members, one by one.
+    V* than a typical member, if not always than the best; chapter 9 (section 3, the ladder) and chapter 10
+    (section 5, the rigid body) measure by how much. Checkpoints store the members, one by one.
 
     * ``members``: the solutions (at least one; a list or tuple of :class:`FiniteHorizonSolution` or
       :class:`SteadyStateSolution`), all of the same system (its name and n); each is evaluated at the same t,
