@@ -146,18 +146,31 @@ SHOT_TILE = 8000  # CSS px; one full-page capture much taller than this comes ba
 
 def _full_page_shot(page, path: Path) -> None:
     """The whole page as one PNG at ``path``. Chromium leaves the text of a very tall full-page capture blank
-    (chapter 8 is over 35000 px), so a tall page is captured in clips of ``SHOT_TILE`` px and stitched."""
+    (chapter 8 is over 35000 px), so a tall page is captured in clips of ``SHOT_TILE`` px and stitched. The clips
+    are taken from one window as tall as the page, set once: a full-page capture per clip resizes the window for
+    each, and the theme's layout, redone on each resize, came back shifted and cut at a seam (chapter 10's last
+    clip, 2026-12-06). The window gets its own size back afterwards."""
     height = page.evaluate("() => document.documentElement.scrollHeight")
     if height <= SHOT_TILE:
         page.screenshot(path=str(path), full_page=True)
         return
     from PIL import Image
 
-    width = page.viewport_size["width"]
-    tiles = []
-    for y in range(0, height, SHOT_TILE):
-        clip = dict(x=0, y=y, width=width, height=min(SHOT_TILE, height - y))
-        tiles.append(Image.open(io.BytesIO(page.screenshot(clip=clip, full_page=True))))
+    window = dict(page.viewport_size)
+    try:
+        for _ in range(5):  # a window as tall as the page can change the page's height (vh units): until it holds
+            page.set_viewport_size({"width": window["width"], "height": height})
+            page.wait_for_timeout(300)
+            now = page.evaluate("() => document.documentElement.scrollHeight")
+            if now == height:
+                break
+            height = now
+        tiles = []
+        for y in range(0, height, SHOT_TILE):
+            clip = dict(x=0, y=y, width=window["width"], height=min(SHOT_TILE, height - y))
+            tiles.append(Image.open(io.BytesIO(page.screenshot(clip=clip))))
+    finally:
+        page.set_viewport_size(window)
     sheet = Image.new("RGB", (tiles[0].width, sum(t.height for t in tiles)), "white")
     top = 0
     for tile in tiles:  # in device pixels, each tile below the last
