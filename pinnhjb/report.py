@@ -19,12 +19,15 @@ __all__ = ["num", "table", "Table"]
 def num(x, spec: str = ".2e", zero: float = 1e-12, floor: float | None = None) -> str:
     """Format one number for a page.
 
-    * ``x``: the value (anything ``float()`` accepts); NaN and infinities print as such.
+    * ``x``: the value (anything ``float()`` accepts); NaN and infinities print as such; None, a number a run did
+      not measure (``row.get(key)``), prints as a dash, "–".
     * ``spec``: a format spec, e.g. ``".2e"``, ``".3f"``, ``"+.1e"``.
     * ``zero``: values with ``|x| < zero`` print as zero (rounding noise has no sign and no digits).
     * ``floor``: when given, values with ``|x| < floor`` (and not zero) print as ``< floor``, for quantities
       whose size below the floor depends on the computer (e.g. a residual at rounding level).
     """
+    if x is None:
+        return "–"
     x = float(x)
     if math.isfinite(x):
         if floor is not None and abs(x) < floor:
