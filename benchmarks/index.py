@@ -33,6 +33,7 @@ BENCHMARKS = (
     "third_order_horizon",
     "step_cost",
     "lm_step",
+    "polish",
 )
 
 #: Flags left out of the commands shown: where the output went and the free-text note.

@@ -189,3 +189,39 @@ def test_results_index_is_generated():
         index.main(["--check", "--results", str(SPEED.parent / "no-such-folder")])
     meta = {"command": "benchmarks/dimension.py --ladder  --note two words --out /tmp/x --no-progress --seed 1"}
     assert index.command(meta) == 'benchmarks/dimension.py --ladder "" --seed 1'
+
+
+def test_polish_correction_solves_the_derived_hjb():
+    """benchmarks/polish.py: for V0 = V* - c, the derived system's steady-state HJB residual at c is the original
+    system's at V* (zero on the LQ ladder, to rounding), and at c = 0 it is V0's own residual E_e(x; V0)."""
+    import torch
+
+    import pinnhjb as ph
+    from pinnhjb.pinn import gradient
+
+    path = SPEED.parent / "polish.py"
+    spec = importlib.util.spec_from_file_location("polish_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(SPEED.parent))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(SPEED.parent))
+    system = ph.systems.lq_ladder(2)
+    x = system.sample(64, torch.Generator().manual_seed(0), dtype=torch.float64)
+
+    def bump(z):  # a smooth correction c with c(0) = 0
+        return 0.3 * torch.sin(z).pow(2).sum(-1)
+
+    def v0(z):
+        return system.value_star(z) - bump(z)
+
+    derived = module.correction_system(system, v0)
+    g_c = gradient(bump, x)[1]
+    g_star = gradient(system.value_star, x)[1]
+    assert system.hamiltonian_min(x, g_star).abs().max() < 1e-12  # V* solves the ladder's HJB
+    assert derived.hamiltonian_min(x, g_c).abs().max() < 1e-12
+    g_0 = gradient(v0, x)[1]
+    own = system.hamiltonian_min(x, g_0)
+    assert own.abs().max() > 1e-3  # V0 is not V*
+    assert torch.allclose(derived.hamiltonian_min(x, torch.zeros_like(x)), own, rtol=1e-12, atol=1e-14)
