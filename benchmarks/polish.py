@@ -102,8 +102,15 @@ def measures(system, fn, x, v_star, g_star) -> dict:
 
 
 def row(name, system, sol, k, config, seed, x, v_star, g_star, trained_on: str) -> dict:
-    """The chain's first k stages, measured, polished and measured again; k = 0: no chain, V0 = 0 (the direct
-    steady-state PINN of chapter 1, with the same network and recipe)."""
+    """The chain's first k stages, measured, polished and measured again; one row of the results.
+
+    * ``name``: the row's name; ``system``: the chain's system; ``sol``: the chain.
+    * ``k``: how many of its stages; 0: no chain, V0 = 0 (chapter 1's direct steady-state PINN, with the same
+      network and recipe).
+    * ``config``, ``seed``: the polish's recipe and seed.
+    * ``x``, ``v_star``, ``g_star``: the error states, V* and grad V* there.
+    * ``trained_on``: where the chain trained (:func:`where`).
+    """
     v0 = sol.truncated(k)._value_fn(0.0) if k else (lambda z: torch.zeros(z.shape[0], dtype=z.dtype))
     before = measures(system, v0, x, v_star, g_star)
     fn, wall, history = polish(system, v0, config, seed)
