@@ -144,6 +144,10 @@ def main(argv=None) -> int:
     )
     p.add_argument("--out", type=Path, default=HERE / "results" / "repeats" / "polish", help="where to write")
     args = p.parse_args(argv)
+    if args.threads < 1:
+        p.error(f"--threads must be at least 1; got {args.threads}")
+    if args.seed < 0:
+        p.error(f"--seed must be a non-negative integer; got {args.seed}")
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     rows = []
