@@ -111,12 +111,11 @@ def row(name, system, sol, k, config, seed, x, v_star, g_star, trained_on: str) 
     * ``x``, ``v_star``, ``g_star``: the error states, V* and grad V* there.
     * ``trained_on``: where the chain trained (:func:`where`).
     """
-    v0 = sol.truncated(k)._value_fn(0.0) if k else (lambda z: torch.zeros(z.shape[0], dtype=z.dtype))
+    v0 = sol.truncated(k).value_function() if k else (lambda z: torch.zeros(z.shape[0], dtype=z.dtype))
     before = measures(system, v0, x, v_star, g_star)
     fn, wall, history = polish(system, v0, config, seed)
     after = measures(system, fn, x, v_star, g_star)
-    # the chain's training: every attempt of its first k stages (both starts, retries), on its own machine
-    train_s = sum(s.history.wall_time + sum(a["wall_time"] for a in s.rejected) for s in sol.stages[:k])
+    train_s = sol.truncated(k).wall_time if k else 0.0  # every attempt of its stages, on its own machine
     horizon = sol.stages[k - 1].end if k else 0.0
     out = dict(case=name, T=horizon, chain_train_s=train_s, chain_machine=trained_on, polish_s=wall)
     out["stop"] = history.stop_reason

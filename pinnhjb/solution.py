@@ -88,6 +88,15 @@ class _ValueSolution:
             raise TypeError(f"{type(self).__name__} has no horizon: evaluate it without horizon=")
         return t
 
+    def value_function(self, t: float = 0.0, horizon: float | None = None):
+        """V(., t) as a batched torch callable ``x (N, n) -> (N,)``, differentiable in x (and in the weights): for
+        autograd through the learned value, e.g. a residual or a loss of one's own. It moves ``x`` to the networks'
+        device and dtype, and its result back.
+
+        * ``t``, ``horizon``: as in :meth:`value`, checked here, before any call.
+        """
+        return self._value_fn(self._time(t, horizon))
+
     def _value_fn(self, t: float = 0.0):
         def fn(x: Tensor) -> Tensor:
             return self._model_value(x.to(self.device, self.dtype), t).to(x.device, x.dtype)

@@ -182,6 +182,23 @@ def test_one_chain_gives_every_shorter_horizon_of_the_exact_lq_value(lq_chain):
     assert np.abs(lq_chain.value(x, horizon=0.0)).max() < 1e-12
 
 
+def test_the_value_function_is_the_value_and_differentiable(lq_chain, lq_chain_seed1):
+    """value_function: the same V as value(), at t or at a horizon, with autograd's gradient the solution's
+    gradient(); for an averaged solution too."""
+    x = torch.as_tensor(lq_chain.system.grid(7).numpy())
+    for sol in (lq_chain, ph.AveragedSolution([lq_chain, lq_chain_seed1])):
+        for kwargs in ({}, {"t": 0.5}):
+            fn = sol.value_function(**kwargs)
+            xg = x.clone().requires_grad_(True)
+            v = fn(xg)
+            (g,) = torch.autograd.grad(v.sum(), xg)
+            torch.testing.assert_close(v.detach(), sol.value(x, **kwargs), rtol=1e-12, atol=1e-14)
+            torch.testing.assert_close(g, sol.gradient(x, **kwargs), rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(lq_chain.value_function(horizon=1.0)(x), lq_chain.value(x, horizon=1.0))
+    with pytest.raises(ValueError, match=r"horizon must lie in \[0, 2\]"):
+        lq_chain.value_function(horizon=3.0)
+
+
 def test_a_horizon_outside_the_chain_or_beside_t_is_refused(lq_chain, pendulum):
     x = np.zeros((1, 2))
     with pytest.raises(ValueError, match=r"horizon must lie in \[0, 2\]"):
