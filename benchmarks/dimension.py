@@ -196,8 +196,9 @@ def run(task: dict) -> dict:
     return row
 
 
-class _DeepXDEValue:
-    """V(., 0) of a DeepXDE chain (a float64 torch callable) with the ``value``/``gradient`` of a Solution."""
+class FunctionValue:
+    """A value V(x) given as a batched float64 torch callable (a DeepXDE chain's V(., 0), a polished value) with the
+    ``value``/``gradient`` of a Solution, on numpy states, for :func:`true_errors`."""
 
     def __init__(self, fn):
         self.fn = fn
@@ -233,7 +234,7 @@ def run_deepxde(task: dict) -> dict:
     wall = time.perf_counter() - start
     weights = sum(p.numel() for p in model.net.parameters())
     measured = dict(T=stages[-1]["T"], stages=len(stages), E_ratio=ratios[-1], wall_s=wall)
-    errors = true_errors(system, _DeepXDEValue(dxd.value_fn(model.net, length)), task["points"], task["seed"])
+    errors = true_errors(system, FunctionValue(dxd.value_fn(model.net, length)), task["points"], task["seed"])
     return _row(task, system, weights, measured, errors)
 
 

@@ -51,7 +51,8 @@ def _date(meta: dict) -> str:
     return str(meta.get("created", "-"))[:10]
 
 
-def _where(meta: dict) -> str:
+def where(meta: dict) -> str:
+    """Where a run trained, from its ``meta``: the machine and the threads."""
     where = meta.get("machine") or "not recorded"
     threads = meta.get("threads")
     return where if threads is None else f"{where}; {threads} thread(s)"
@@ -94,7 +95,7 @@ def _dimension(runs: dict[str, dict]) -> list[str]:
         meta = record["meta"]
         for row in record["rows"]:
             lines.append(
-                f"| `{run}` | {_date(meta)} | {_where(meta)} | {row['system']} | {row.get('recipe', 'default')} "
+                f"| `{run}` | {_date(meta)} | {where(meta)} | {row['system']} | {row.get('recipe', 'default')} "
                 f"| {row['n']} | {row.get('weights', '-')} | {_num(row.get('T'), 'g')} | {_num(row.get('E_ratio'))} "
                 f"| {_num(row.get('value_rel_error'))} | {_num(row.get('grad_mean_rel_error'))} "
                 f"| {_num(row.get('wall_s'), '.0f')} |"
@@ -118,7 +119,7 @@ def _rigid_body(runs: dict[str, dict]) -> list[str]:
             loops = part.get("closed_loop") or {}
             settled = f"{loops['settled']} of {loops['states']}" if "settled" in loops else "-"
             lines.append(
-                f"| `{run}` | {_date(meta)} | {_where(meta)} | {problem} | {meta.get('weights', '-')} "
+                f"| `{run}` | {_date(meta)} | {where(meta)} | {problem} | {meta.get('weights', '-')} "
                 f"| {_num(last.get('T'), 'g')} | {_num(last.get('E_ratio'))} | {_num(last.get('value_rel_error'))} "
                 f"| {_num(last.get('grad_mean_rel_error'))} | {settled} | {_num(loops.get('cost_ratio_max'), '.5f')} "
                 f"| {_num(part.get('wall_s'), '.0f')} |"
@@ -130,7 +131,7 @@ def _other(name: str, runs: dict[str, dict]) -> list[str]:
     lines = ["| run | created | machine | results page |", "|---|---|---|---|"]
     for run, record in runs.items():
         page = f"{name}.md" if run == "main run" else f"{run}/{name}.md"
-        lines.append(f"| `{run}` | {_date(record['meta'])} | {_where(record['meta'])} | [{page}]({page}) |")
+        lines.append(f"| `{run}` | {_date(record['meta'])} | {where(record['meta'])} | [{page}]({page}) |")
     return lines
 
 

@@ -30,6 +30,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from _common import machine
+from dimension import FunctionValue, true_errors
+from index import where
+from rigid_body import errors
 
 import pinnhjb as ph
 from pinnhjb import paper
@@ -90,31 +93,30 @@ def polish(system, v0, config, seed: int):
     return value, wall, history
 
 
-def measures(system, fn, x, v_star, g_star) -> dict:
-    """Value error (per max V*), mean relative gradient error and E / E(V = 0) on the states x."""
-    v, g = (t.detach() for t in gradient(fn, x))
+def measures(system, fn, x, errors_of) -> dict:
+    """The errors of V = ``fn`` as its benchmark measures them (``errors_of``: :func:`dimension.true_errors` or
+    :func:`rigid_body.errors` on a :class:`dimension.FunctionValue`), and E / E(V = 0) on the states x."""
+    out = errors_of(FunctionValue(fn))
+    g = gradient(fn, x)[1].detach()
     e0 = system.hamiltonian_min(x, torch.zeros_like(x)).pow(2).mean()
-    return {
-        "value": float((v - v_star).abs().max() / v_star.abs().max()),
-        "grad": float(((g - g_star).norm(dim=-1) / g_star.norm(dim=-1).clamp_min(1e-12)).mean()),
-        "E_ratio": float(system.hamiltonian_min(x, g).pow(2).mean() / e0),
-    }
+    ratio = system.hamiltonian_min(x, g).pow(2).mean() / e0
+    return {"value": out["value_rel_error"], "grad": out["grad_mean_rel_error"], "E_ratio": float(ratio)}
 
 
-def row(name, system, sol, k, config, seed, x, v_star, g_star, trained_on: str) -> dict:
+def row(name, system, sol, k, config, seed, x, errors_of, trained_on: str) -> dict:
     """The chain's first k stages, measured, polished and measured again; one row of the results.
 
     * ``name``: the row's name; ``system``: the chain's system; ``sol``: the chain.
     * ``k``: how many of its stages; 0: no chain, V0 = 0 (chapter 1's direct steady-state PINN, with the same
       network and recipe).
     * ``config``, ``seed``: the polish's recipe and seed.
-    * ``x``, ``v_star``, ``g_star``: the error states, V* and grad V* there.
-    * ``trained_on``: where the chain trained (:func:`where`).
+    * ``x``, ``errors_of``: the error states and the benchmark's errors there (:func:`measures`).
+    * ``trained_on``: where the chain trained (``index.where``).
     """
     v0 = sol.truncated(k).value_function() if k else (lambda z: torch.zeros(z.shape[0], dtype=z.dtype))
-    before = measures(system, v0, x, v_star, g_star)
+    before = measures(system, v0, x, errors_of)
     fn, wall, history = polish(system, v0, config, seed)
-    after = measures(system, fn, x, v_star, g_star)
+    after = measures(system, fn, x, errors_of)
     train_s = sol.truncated(k).wall_time if k else 0.0  # every attempt of its stages, on its own machine
     horizon = sol.stages[k - 1].end if k else 0.0
     out = dict(case=name, T=horizon, chain_train_s=train_s, chain_machine=trained_on, polish_s=wall)
@@ -127,12 +129,6 @@ def row(name, system, sol, k, config, seed, x, v_star, g_star, trained_on: str) 
         flush=True,
     )
     return out
-
-
-def where(run: dict) -> str:
-    """Where a stored run trained: its machine and threads."""
-    meta = run["meta"]
-    return f"{meta.get('machine') or 'machine not recorded'}; {meta.get('threads')} thread(s)"
 
 
 def main(argv=None) -> int:
@@ -157,24 +153,29 @@ def main(argv=None) -> int:
     sol = ph.load(LADDER / "chains" / "lq_ladder-n6-default.pt", system=system)
     config = ph.TrainConfig.preset("default", dimension=system.n)
     x = dimension_states(system, 4096, ladder_seed)
-    v_star, g_star = (t.detach() for t in gradient(system.value_star, x))
+
+    def exact(value):  # against V* on the ladder run's states, as dimension.py measures
+        return true_errors(system, value, 4096, ladder_seed)
+
     for k in range(len(sol.stages) + 1):
-        rows.append(row("lq_ladder n = 6", system, sol, k, config, args.seed, x, v_star, g_star, where(ladder_run)))
+        rows.append(row("lq_ladder n = 6", system, sol, k, config, args.seed, x, exact, where(ladder_run["meta"])))
 
     ref = paper.benchmark_reference("rigid_body")
     ok = np.asarray(ref.converged, dtype=bool)
     x = torch.as_tensor(ref.points[ok])
-    v_star, g_star = torch.as_tensor(ref.value[ok]), torch.as_tensor(ref.gradient[ok])
+
+    def against_reference(value):  # as rigid_body.py measures
+        return errors(value, ref)
+
     for run_name, folder in RIGID.items():
         run = paper.benchmark_run(name="rigid_body") if run_name == "main" else paper.benchmark_run(run_name)
         system = ph.systems.rigid_body(train_scale=run["meta"]["args"].get("train_scale"))
         sol = ph.load(paper.checkpoint_path(paper.artifacts_dir(), folder, 0), system=system)
         config = ph.TrainConfig.preset("default", dimension=system.n)
         stages = range(1, len(sol.stages) + 1) if run_name == "main" else [len(sol.stages)]
+        name, trained_on = f"rigid body ({run_name})", where(run["meta"])
         for k in stages:  # the main chain after each stage, the other after its last
-            rows.append(
-                row(f"rigid body ({run_name})", system, sol, k, config, args.seed, x, v_star, g_star, where(run))
-            )
+            rows.append(row(name, system, sol, k, config, args.seed, x, against_reference, trained_on))
 
     wall = time.perf_counter() - start
     meta = provenance(

@@ -12,16 +12,22 @@ import pytest
 SPEED = Path(__file__).resolve().parents[1] / "benchmarks" / "speed.py"
 
 
-@pytest.fixture(scope="module")
-def speed():
-    before = os.environ.get("CUDA_VISIBLE_DEVICES")
-    spec = importlib.util.spec_from_file_location("speed_benchmark", SPEED)
+def script(name: str):
+    """benchmarks/<name>.py as a module (the scripts import their siblings, e.g. _common.py, by name)."""
+    spec = importlib.util.spec_from_file_location(f"{name}_benchmark", SPEED.parent / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(SPEED.parent))  # the scripts import benchmarks/_deepxde.py as a sibling
+    sys.path.insert(0, str(SPEED.parent))
     try:
         spec.loader.exec_module(module)
     finally:
         sys.path.remove(str(SPEED.parent))
+    return module
+
+
+@pytest.fixture(scope="module")
+def speed():
+    before = os.environ.get("CUDA_VISIBLE_DEVICES")
+    module = script("speed")
     assert os.environ.get("CUDA_VISIBLE_DEVICES") == before  # importing it hides no GPU (only main(--device cpu))
     return module
 
@@ -178,9 +184,7 @@ def test_timed_measure_is_the_solvers_public_evaluation_hook(speed):
 def test_results_index_is_generated():
     """``benchmarks/results/index.md`` is what ``benchmarks/index.py`` makes of the stored runs, so none of its
     numbers is typed; a stored run added without rewriting the page fails here."""
-    spec = importlib.util.spec_from_file_location("index_benchmark", SPEED.parent / "index.py")
-    index = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(index)
+    index = script("index")
     page = index.render()
     assert (SPEED.parent / "results" / "index.md").read_text() == page
     assert "| `repeats/ladder-n6-best-start` |" in page and "| `main run` |" in page
@@ -199,14 +203,7 @@ def test_polish_correction_solves_the_derived_hjb():
     import pinnhjb as ph
     from pinnhjb.pinn import gradient
 
-    path = SPEED.parent / "polish.py"
-    spec = importlib.util.spec_from_file_location("polish_benchmark", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(SPEED.parent))
-    try:
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(SPEED.parent))
+    module = script("polish")
     system = ph.systems.lq_ladder(2)
     x = system.sample(64, torch.Generator().manual_seed(0), dtype=torch.float64)
 
