@@ -24,6 +24,9 @@ The content (chapters and theory pages):
 
 * no visible code input block (``div.cell_input pre``, ``div.highlight pre``) scrolls sideways, nor a printed
   output (they wrap in their box);
+* every display equation fits its column, on a phone too: ``book/_theme/pinnhjb.js`` draws a wide one smaller,
+  down to 0.7 of its size, and beyond that the equation must be written on more lines; and no inline formula is
+  wider than its line (one that is gets the class ``pinnhjb-wide`` and scrolls: make it a display equation);
 * every raster figure (``img`` in cell outputs, figures and explorer sliders) displays at >= 0.75 of its
   intended width, on the desktop and on a phone (where it scrolls sideways in its own box): its ``width``
   attribute when set (a 2x "retina" PNG carries width = natural / 2), else its inline style width in px (how
@@ -341,6 +344,18 @@ _OUTPUT_SCROLLING = _scrolling(
     "Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'))"
 )
 
+_EQUATIONS_SCROLLING = (
+    """() => {
+    const shown = (%s);
+    return Array.from(document.querySelectorAll(
+            'article mjx-container[jax="CHTML"][display="true"], article span.math.pinnhjb-wide'))
+        .filter(el => shown(el) && el.scrollWidth - el.clientWidth > 2)
+        .map(el => ({over: el.scrollWidth - el.clientWidth, width: el.clientWidth, size: el.style.fontSize,
+                     inline: el.tagName === 'SPAN', text: el.textContent.trim().slice(0, 50)}));
+}"""
+    % _IS_SHOWN
+)
+
 _FIGURES = (
     """() => {
     const shown = (%s);
@@ -586,6 +601,10 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
             f"longest line ({c['chars']} chars): {c['line']!r}"
         )
 
+    for c in page.evaluate(_EQUATIONS_SCROLLING):
+        kind = "an inline formula" if c["inline"] else f"a display equation at font size {c['size'] or 'as drawn'}"
+        found["equations"].append(f"{where}: {kind} scrolls {c['over']} px in a {c['width']} px box: {c['text']!r}")
+
     for c in page.evaluate(_OUTPUT_SCROLLING):
         found["outputs"].append(
             f"{where}: the output of {c['where']} scrolls {c['over']} px in a {c['width']} px box: {c['line']!r}"
@@ -778,6 +797,10 @@ def test_screenshots_of_every_page(sweep):
 
 def test_code_fits_without_scrolling(sweep):
     _report(sweep, "code", "code input blocks that scroll sideways")
+
+
+def test_equations_fit_their_column(sweep):
+    _report(sweep, "equations", "equations that scroll sideways (write them on more lines, or as displays)")
 
 
 def test_printed_outputs_wrap_in_their_box(sweep):

@@ -1,9 +1,14 @@
-// The pinnhjb book: an inline formula wider than its line gets the class pinnhjb-wide, which lets it scroll
-// sideways (pinnhjb.css) instead of being clipped; the others stay exactly as the theme draws them. MathJax
-// typesets after the page has loaded, so this runs once it is done, and again when the window is resized.
+// The pinnhjb book, once MathJax has typeset the page (it typesets after the page has loaded), and again when
+// the window is resized:
+// * an inline formula wider than its line gets the class pinnhjb-wide, which lets it scroll sideways
+//   (pinnhjb.css) instead of being clipped; the others stay exactly as the theme draws them;
+// * a display equation wider than its column (on a phone, most of the theory's) is drawn smaller until it fits,
+//   down to FLOOR of its size; one that needs more still scrolls sideways in its box (pinnhjb.css).
+//   MathJax's CHTML output is sized in em, so its font size scales the whole equation, number included.
 (function () {
   "use strict";
   var SLACK = 2; // px: MathJax's glyphs overhang their boxes by a fraction of a pixel; that is not "wider"
+  var FLOOR = 0.7; // the smallest scale of a display equation: MathJax draws at 1.27 times the text, so 0.89 of it
 
   function mark() {
     document.querySelectorAll("span.math").forEach(function (el) {
@@ -12,16 +17,37 @@
     });
   }
 
+  function fit() {
+    var shown = [];
+    document.querySelectorAll('mjx-container[jax="CHTML"][display="true"]').forEach(function (el) {
+      if (el.dataset.pinnhjbSize === undefined) el.dataset.pinnhjbSize = el.style.fontSize || "";
+      el.style.fontSize = el.dataset.pinnhjbSize; // as MathJax drew it, to measure its natural width
+      if (el.clientWidth > 0) shown.push(el);
+    });
+    shown.forEach(function (el) {
+      var natural = el.scrollWidth, room = el.clientWidth;
+      if (natural - room <= SLACK) return;
+      var scale = Math.max(FLOOR, (room - SLACK) / natural);
+      var base = parseFloat(el.dataset.pinnhjbSize) || 100; // MathJax's own size, a percentage
+      el.style.fontSize = (base * scale).toFixed(2) + "%";
+    });
+  }
+
+  function adjust() {
+    mark();
+    fit();
+  }
+
   function whenTypeset() {
     var mj = window.MathJax;
-    if (mj && mj.startup && mj.startup.promise) mj.startup.promise.then(mark);
-    else mark();
+    if (mj && mj.startup && mj.startup.promise) mj.startup.promise.then(adjust);
+    else adjust();
   }
 
   window.addEventListener("load", whenTypeset);
   var timer = null;
   window.addEventListener("resize", function () {
     clearTimeout(timer);
-    timer = setTimeout(mark, 150);
+    timer = setTimeout(adjust, 150);
   });
 })();
