@@ -1,8 +1,9 @@
 """The built book in a real browser: headless Chromium over a local static server, with no network.
 
 Serves ``_build/html`` on a free localhost port and opens EVERY content page (the root page, the theory and
-reference pages under ``book/``, every chapter under ``notebooks/``) at a desktop size (1400 x 900) and a
-phone size (390 x 844). One sweep (the ``sweep`` fixture) visits every page at both sizes and records what each
+reference pages under ``book/``, every chapter under ``notebooks/``) at a desktop size (1400 x 900), a laptop
+size (1280 x 800: from 1200 px both sidebars show and the text's column is at its narrowest) and a phone size
+(390 x 844). One sweep (the ``sweep`` fixture) visits every page at both sizes and records what each
 check finds; each test below then reports every offending page and element of its check in one message, so a
 failing run says everything that is wrong at once.
 
@@ -23,7 +24,8 @@ The shell (theme, configuration, ``book/_ext``, ``book/_theme``):
 The content (chapters and theory pages):
 
 * no visible code input block (``div.cell_input pre``, ``div.highlight pre``) scrolls sideways, nor a printed
-  output (they wrap in their box);
+  output (they wrap in their box); on the desktop none even wraps (``book/_theme/pinnhjb.js`` wraps a block
+  wider than its box, as on a laptop or a phone): its lines fit the column;
 * every display equation fits its column, on a phone too: ``book/_theme/pinnhjb.js`` draws a wide one smaller,
   down to 0.7 of its size, and beyond that the equation must be written on more lines; and no inline formula is
   wider than its line (one that is gets the class ``pinnhjb-wide`` and scrolls: make it a display equation);
@@ -35,8 +37,8 @@ The content (chapters and theory pages):
   ``{cite}``, ``eq-...``);
 * every chapter links to a page of the book's theory part.
 
-A full-page screenshot of every page at both sizes goes to ``_build/screenshots/`` (``<page>__desktop.png``,
-``<page>__phone.png``). Skipped when ``_build/html``, Chromium or Playwright is missing, unless
+A full-page screenshot of every page at every size goes to ``_build/screenshots/`` (``<page>__desktop.png``,
+``<page>__laptop.png``, ``<page>__phone.png``). Skipped when ``_build/html``, Chromium or Playwright is missing, unless
 ``PINNHJB_REQUIRE_SITE=1`` (set by ``.ci/run``), which turns every skip into a failure. Build the site first:
 ``bash scripts/build_book.sh`` (``scripts/test.sh`` does it). ``PINNHJB_SITE`` points the test at another
 built site (e.g. a quick build without notebook execution).
@@ -74,7 +76,7 @@ CHROMIUM_FLAGS = [
 EXPLORER_MARK = 'class="pinnhjb-explorer"'
 WIDGET_VIEW_MARK = "application/vnd.jupyter.widget-view+json"
 WIDGET_STATE_MARK = "application/vnd.jupyter.widget-state+json"
-SIZES = {"desktop": (1400, 900), "phone": (390, 844)}
+SIZES = {"desktop": (1400, 900), "laptop": (1280, 800), "phone": (390, 844)}
 MIN_FIGURE_SCALE = 0.75  # a raster figure shows at no less than this fraction of its intended width
 MIN_DRAWER_LINKS = 3  # an open navigation drawer shows at least this many reachable links
 
@@ -314,15 +316,16 @@ _VISIBLE_TEXT = (
 )
 
 
-def _scrolling(blocks: str) -> str:
+def _scrolling(blocks: str, wider: str = "pre.scrollWidth > pre.clientWidth + 1") -> str:
     """JavaScript that returns the shown ``<pre>`` boxes among ``blocks`` (a JavaScript expression giving an array
-    of them) wider than their box: by how much, the box's width, which cell (or block) and its longest line."""
+    of them) wider than their box (``wider``, a JavaScript condition on ``pre``): by how much, the box's width,
+    which cell (or block) and its longest line."""
     return """() => {
     const shown = (%s);
     const blocks = %s;
     const cells = Array.from(document.querySelectorAll('div.cell'));
     return blocks
-        .filter(pre => shown(pre) && pre.scrollWidth > pre.clientWidth + 1)
+        .filter(pre => shown(pre) && (%s))
         .map(pre => {
             const lines = pre.innerText.split('\\n');
             const longest = lines.reduce((a, b) => (b.length > a.length ? b : a), '');
@@ -331,14 +334,16 @@ def _scrolling(blocks: str) -> str:
             return {over: pre.scrollWidth - pre.clientWidth, width: pre.clientWidth, where,
                     line: longest.trim().slice(0, 60), chars: longest.length};
         });
-}""" % (_IS_SHOWN, blocks)
+}""" % (_IS_SHOWN, blocks, wider)
 
 
 # code the reader is meant to read: cell inputs and code blocks of the text, not printed outputs
-_CODE_SCROLLING = _scrolling(
+_CODE = (
     "Array.from(document.querySelectorAll('div.cell_input pre, div.highlight pre'))"
     ".filter(pre => !pre.closest('.cell_output, .output'))"
 )
+_CODE_SCROLLING = _scrolling(_CODE)
+_CODE_WRAPPED = _scrolling(_CODE, "pre.classList.contains('pinnhjb-wrap')")  # by book/_theme/pinnhjb.js
 # printed outputs, which wrap in their box (book/_theme/pinnhjb.css)
 _OUTPUT_SCROLLING = _scrolling(
     "Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'))"
@@ -600,6 +605,12 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
             f"{where}: {c['where']} scrolls {c['over']} px in a {c['width']} px box; "
             f"longest line ({c['chars']} chars): {c['line']!r}"
         )
+    if size == "desktop":
+        for c in page.evaluate(_CODE_WRAPPED):
+            found["code"].append(
+                f"{where}: {c['where']} wraps in a {c['width']} px box: a line too long for the column "
+                f"({c['chars']} chars): {c['line']!r}"
+            )
 
     for c in page.evaluate(_EQUATIONS_SCROLLING):
         kind = "an inline formula" if c["inline"] else f"a display equation at font size {c['size'] or 'as drawn'}"
@@ -796,7 +807,7 @@ def test_screenshots_of_every_page(sweep):
 
 
 def test_code_fits_without_scrolling(sweep):
-    _report(sweep, "code", "code input blocks that scroll sideways")
+    _report(sweep, "code", "code input blocks that scroll sideways, or wrap on the desktop")
 
 
 def test_equations_fit_their_column(sweep):

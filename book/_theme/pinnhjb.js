@@ -4,7 +4,11 @@
 //   (pinnhjb.css) instead of being clipped; the others stay exactly as the theme draws them;
 // * a display equation wider than its column (on a phone, most of the theory's) is drawn smaller until it fits,
 //   down to FLOOR of its size; one that needs more still scrolls sideways in its box (pinnhjb.css).
-//   MathJax's CHTML output is sized in em, so its font size scales the whole equation, number included.
+//   MathJax's CHTML output is sized in em, so its font size scales the whole equation, number included;
+// * a block of code wider than its box gets the class pinnhjb-wrap, which wraps its long lines (pinnhjb.css)
+//   instead of making the reader scroll sideways: the chapters keep their code within 78 characters, which fit
+//   the column of a wide window but not that of a laptop's (1200 to 1400 px, where both sidebars show) or a
+//   phone's. Printed outputs always wrap (pinnhjb.css). A hidden cell's code is measured when it is opened.
 (function () {
   "use strict";
   var SLACK = 2; // px: MathJax's glyphs overhang their boxes by a fraction of a pixel; that is not "wider"
@@ -33,9 +37,18 @@
     });
   }
 
+  function wrapCode() {
+    document.querySelectorAll("article pre").forEach(function (el) {
+      if (el.closest(".cell_output")) return;
+      el.classList.remove("pinnhjb-wrap");
+      if (el.scrollWidth - el.clientWidth > SLACK) el.classList.add("pinnhjb-wrap");
+    });
+  }
+
   function adjust() {
     mark();
     fit();
+    wrapCode();
   }
 
   function whenTypeset() {
@@ -45,6 +58,7 @@
   }
 
   window.addEventListener("load", whenTypeset);
+  document.addEventListener("toggle", wrapCode, true); // a hidden cell opened: <details> fires toggle
   var timer = null;
   window.addEventListener("resize", function () {
     clearTimeout(timer);
