@@ -6,9 +6,10 @@
 //   down to FLOOR of its size; one that needs more still scrolls sideways in its box (pinnhjb.css).
 //   MathJax's CHTML output is sized in em, so its font size scales the whole equation, number included;
 // * a block of code wider than its box gets the class pinnhjb-wrap, which wraps its long lines (pinnhjb.css)
-//   instead of making the reader scroll sideways: the chapters keep their code within 78 characters, which fit
-//   the column of a wide window but not that of a laptop's (1200 to 1400 px, where both sidebars show) or a
-//   phone's. Printed outputs always wrap (pinnhjb.css). A hidden cell's code is measured when it is opened.
+//   instead of making the reader scroll sideways: the chapters keep their visible code within 77 characters,
+//   which fit the column from 1280 px up, but not a phone's, nor that of a window 1200 to 1280 px wide (both
+//   sidebars show from 1200 px). Printed outputs always wrap (pinnhjb.css). A hidden cell's code is measured
+//   again when it is opened.
 (function () {
   "use strict";
   var SLACK = 2; // px: MathJax's glyphs overhang their boxes by a fraction of a pixel; that is not "wider"
