@@ -29,6 +29,7 @@ The content (chapters and theory pages):
 * every display equation fits its column, on a phone too: ``book/_theme/pinnhjb.js`` draws a wide one smaller,
   down to 0.7 of its size, and beyond that the equation must be written on more lines; and no inline formula is
   wider than its line (one that is gets the class ``pinnhjb-wide`` and scrolls: make it a display equation);
+  an inline formula is glued to the punctuation after it (``pinnhjb.js``), so no line starts with a full stop;
 * every raster figure (``img`` in cell outputs, figures and explorer sliders) displays at >= 0.75 of its
   intended width, on the desktop and on a phone (where it scrolls sideways in its own box): its ``width``
   attribute when set (a 2x "retina" PNG carries width = natural / 2), else its inline style width in px (how
@@ -361,6 +362,13 @@ _EQUATIONS_SCROLLING = (
     % _IS_SHOWN
 )
 
+# inline formulas with the punctuation after them left loose (pinnhjb.js glues them together)
+_LOOSE_PUNCTUATION = """() => Array.from(document.querySelectorAll('article span.math'))
+    .filter(el => { const n = el.nextSibling;
+                    return !el.parentElement.classList.contains('pinnhjb-glue') &&
+                           n && n.nodeType === Node.TEXT_NODE && /^[.,;:!?)\\]]/.test(n.textContent); })
+    .map(el => el.textContent.trim().slice(0, 30) + ' ' + el.nextSibling.textContent.slice(0, 1))"""
+
 _FIGURES = (
     """() => {
     const shown = (%s);
@@ -615,6 +623,11 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
     for c in page.evaluate(_EQUATIONS_SCROLLING):
         kind = "an inline formula" if c["inline"] else f"a display equation at font size {c['size'] or 'as drawn'}"
         found["equations"].append(f"{where}: {kind} scrolls {c['over']} px in a {c['width']} px box: {c['text']!r}")
+    loose = page.evaluate(_LOOSE_PUNCTUATION)
+    if loose:
+        found["equations"].append(
+            f"{where}: {len(loose)} inline formulas not glued to the punctuation after them: {loose[:3]}"
+        )
 
     for c in page.evaluate(_OUTPUT_SCROLLING):
         found["outputs"].append(

@@ -9,7 +9,10 @@
 //   instead of making the reader scroll sideways: the chapters keep their visible code within 77 characters,
 //   which fit the column from 1280 px up, but not a phone's, nor that of a window 1200 to 1280 px wide (both
 //   sidebars show from 1200 px). Printed outputs always wrap (pinnhjb.css). A hidden cell's code is measured
-//   again when it is opened.
+//   again when it is opened;
+// * an inline formula followed by punctuation (".", ",", ";", ":", ")", ...) is glued to it, so that a line never
+//   starts with the full stop of the sentence before: the browser may break a line after an inline box such as
+//   MathJax's formula, and before the punctuation after it.
 (function () {
   "use strict";
   var SLACK = 2; // px: MathJax's glyphs overhang their boxes by a fraction of a pixel; that is not "wider"
@@ -46,7 +49,24 @@
     });
   }
 
+  function glue() {
+    document.querySelectorAll("article span.math").forEach(function (el) {
+      if (el.parentElement.classList.contains("pinnhjb-glue")) return;
+      var next = el.nextSibling;
+      if (!next || next.nodeType !== Node.TEXT_NODE) return;
+      var punct = /^[.,;:!?)\]\u2019\u201d]+/.exec(next.textContent);
+      if (!punct) return;
+      var both = document.createElement("span");
+      both.className = "pinnhjb-glue";
+      el.parentNode.insertBefore(both, el);
+      both.appendChild(el);
+      next.textContent = next.textContent.slice(punct[0].length);
+      both.appendChild(document.createTextNode(punct[0]));
+    });
+  }
+
   function adjust() {
+    glue();
     mark();
     fit();
     wrapCode();
