@@ -95,12 +95,12 @@ def polish(system, v0, config, seed: int):
 
 def measures(system, fn, x, errors_of) -> dict:
     """The errors of V = ``fn`` as its benchmark measures them (``errors_of``: :func:`dimension.true_errors` or
-    :func:`rigid_body.errors` on a :class:`dimension.FunctionValue`), and E / E(V = 0) on the states x."""
+    :func:`rigid_body.errors` on a :class:`dimension.FunctionValue`), and E / E(V = 0) on the states x (the mean of
+    E_e^2 over that of Q^2, :func:`pinnhjb.metrics.infinite_horizon_residual`'s ``E_flow / E_zero``)."""
     out = errors_of(FunctionValue(fn))
-    g = gradient(fn, x)[1].detach()
-    e0 = system.hamiltonian_min(x, torch.zeros_like(x)).pow(2).mean()
-    ratio = system.hamiltonian_min(x, g).pow(2).mean() / e0
-    return {"value": out["value_rel_error"], "grad": out["grad_mean_rel_error"], "E_ratio": float(ratio)}
+    check = ph.metrics.infinite_horizon_residual(system, fn, points=x)
+    ratio = check["E_flow"] / check["E_zero"]
+    return {"value": out["value_rel_error"], "grad": out["grad_mean_rel_error"], "E_ratio": ratio}
 
 
 def row(name, system, sol, k, config, seed, x, errors_of, trained_on: str) -> dict:

@@ -18,10 +18,14 @@
   var SLACK = 2; // px: MathJax's glyphs overhang their boxes by a fraction of a pixel; that is not "wider"
   var FLOOR = 0.7; // the smallest scale of a display equation: MathJax draws at 1.27 times the text, so 0.89 of it
 
+  function wider(el) {
+    return el.scrollWidth - el.clientWidth > SLACK;
+  }
+
   function mark() {
     document.querySelectorAll("span.math").forEach(function (el) {
       el.classList.remove("pinnhjb-wide");
-      if (el.scrollWidth - el.clientWidth > SLACK) el.classList.add("pinnhjb-wide");
+      if (wider(el)) el.classList.add("pinnhjb-wide");
     });
   }
 
@@ -33,8 +37,8 @@
       if (el.clientWidth > 0) shown.push(el);
     });
     shown.forEach(function (el) {
+      if (!wider(el)) return;
       var natural = el.scrollWidth, room = el.clientWidth;
-      if (natural - room <= SLACK) return;
       var scale = Math.max(FLOOR, (room - SLACK) / natural);
       var base = parseFloat(el.dataset.pinnhjbSize) || 100; // MathJax's own size, a percentage
       el.style.fontSize = (base * scale).toFixed(2) + "%";
@@ -45,7 +49,7 @@
     document.querySelectorAll("article pre").forEach(function (el) {
       if (el.closest(".cell_output")) return;
       el.classList.remove("pinnhjb-wrap");
-      if (el.scrollWidth - el.clientWidth > SLACK) el.classList.add("pinnhjb-wrap");
+      if (wider(el)) el.classList.add("pinnhjb-wrap");
     });
   }
 
