@@ -29,7 +29,9 @@ The content (chapters and theory pages):
 * every display equation fits its column, on a phone too: ``book/_theme/pinnhjb.js`` draws a wide one smaller,
   down to 0.7 of its size, and beyond that the equation must be written on more lines; and no inline formula is
   wider than its line (one that is gets the class ``pinnhjb-wide`` and scrolls: make it a display equation);
-  an inline formula is glued to the punctuation after it (``pinnhjb.js``), so no line starts with a full stop;
+  an inline formula is glued to the punctuation after it and to an opening bracket before it (``pinnhjb.js``),
+  so no line starts with a full stop or ends with "("; and a box that fits draws no "more this way" shadow
+  (it left a faint line at the edge of every equation on a phone);
 * every raster figure (``img`` in cell outputs, figures and explorer sliders) displays at >= 0.75 of its
   intended width, on the desktop and on a phone (where it scrolls sideways in its own box): its ``width``
   attribute when set (a 2x "retina" PNG carries width = natural / 2), else its inline style width in px (how
@@ -362,12 +364,28 @@ _EQUATIONS_SCROLLING = (
     % _IS_SHOWN
 )
 
-# inline formulas with the punctuation after them left loose (pinnhjb.js glues them together)
+# inline formulas with the punctuation after them, or an opening bracket before them, left loose (pinnhjb.js glues
+# them together)
 _LOOSE_PUNCTUATION = """() => Array.from(document.querySelectorAll('article span.math'))
-    .filter(el => { const n = el.nextSibling;
-                    return !el.parentElement.classList.contains('pinnhjb-glue') &&
-                           n && n.nodeType === Node.TEXT_NODE && /^[.,;:!?)\\]]/.test(n.textContent); })
-    .map(el => el.textContent.trim().slice(0, 30) + ' ' + el.nextSibling.textContent.slice(0, 1))"""
+    .map(el => { const glued = el.parentElement.classList.contains('pinnhjb-glue'), box = glued ? el.parentElement : el;
+                 const n = el.nextSibling, p = box.previousSibling, text = t => t && t.nodeType === Node.TEXT_NODE;
+                 const after = !glued && text(n) && /^[.,;:!?)\\]]/.test(n.textContent) ? n.textContent[0] : '';
+                 const before = text(p) && /[(\\[]$/.test(p.textContent) ? p.textContent.slice(-1) : '';
+                 return (after || before) ? before + el.textContent.trim().slice(0, 30) + after : null; })
+    .filter(s => s !== null)"""
+
+# boxes that fit but draw the "more this way" shadows (pinnhjb.css draws them on .pinnhjb-scrolls only)
+_IDLE_SHADOWS = (
+    """() => {
+    const shown = (%s);
+    return Array.from(document.querySelectorAll(
+            'article mjx-container[jax="CHTML"][display="true"], article .pst-scrollable-table-container'))
+        .filter(el => shown(el) && el.scrollWidth - el.clientWidth <= 2 &&
+                      getComputedStyle(el).backgroundImage.includes('gradient'))
+        .map(el => el.textContent.trim().slice(0, 40));
+}"""
+    % _IS_SHOWN
+)
 
 _FIGURES = (
     """() => {
@@ -626,8 +644,11 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
     loose = page.evaluate(_LOOSE_PUNCTUATION)
     if loose:
         found["equations"].append(
-            f"{where}: {len(loose)} inline formulas not glued to the punctuation after them: {loose[:3]}"
+            f"{where}: {len(loose)} inline formulas not glued to the punctuation around them: {loose[:3]}"
         )
+    idle = page.evaluate(_IDLE_SHADOWS)
+    if idle:
+        found["equations"].append(f"{where}: {len(idle)} boxes that fit draw scroll shadows: {idle[:3]}")
 
     for c in page.evaluate(_OUTPUT_SCROLLING):
         found["outputs"].append(

@@ -12,11 +12,16 @@
 //   again when it is opened;
 // * an inline formula followed by punctuation (".", ",", ";", ":", ")", ...) is glued to it, so that a line never
 //   starts with the full stop of the sentence before: the browser may break a line after an inline box such as
-//   MathJax's formula, and before the punctuation after it.
+//   MathJax's formula, and before the punctuation after it. An opening bracket before it is glued too, so that no
+//   line ends with "(";
+// * a display equation or table that still scrolls gets the class pinnhjb-scrolls, which draws the "more this
+//   way" shadows (pinnhjb.css); a box that fits draws none (drawn on every box, the shadows left a faint line at
+//   the right edge of one that fits).
 (function () {
   "use strict";
   var SLACK = 2; // px: MathJax's glyphs overhang their boxes by a fraction of a pixel; that is not "wider"
   var FLOOR = 0.7; // the smallest scale of a display equation: MathJax draws at 1.27 times the text, so 0.89 of it
+  var SCROLLING = 'mjx-container[jax="CHTML"][display="true"], .pst-scrollable-table-container';
 
   function wider(el) {
     return el.scrollWidth - el.clientWidth > SLACK;
@@ -56,16 +61,28 @@
   function glue() {
     document.querySelectorAll("article span.math").forEach(function (el) {
       if (el.parentElement.classList.contains("pinnhjb-glue")) return;
-      var next = el.nextSibling;
-      if (!next || next.nodeType !== Node.TEXT_NODE) return;
-      var punct = /^[.,;:!?)\]\u2019\u201d]+/.exec(next.textContent);
-      if (!punct) return;
+      var next = el.nextSibling, prev = el.previousSibling;
+      var after = next && next.nodeType === Node.TEXT_NODE && /^[.,;:!?)\]\u2019\u201d]+/.exec(next.textContent);
+      var before = prev && prev.nodeType === Node.TEXT_NODE && /[(\[\u2018\u201c]+$/.exec(prev.textContent);
+      if (!after && !before) return;
       var both = document.createElement("span");
       both.className = "pinnhjb-glue";
       el.parentNode.insertBefore(both, el);
+      if (before) {
+        prev.textContent = prev.textContent.slice(0, prev.textContent.length - before[0].length);
+        both.appendChild(document.createTextNode(before[0]));
+      }
       both.appendChild(el);
-      next.textContent = next.textContent.slice(punct[0].length);
-      both.appendChild(document.createTextNode(punct[0]));
+      if (after) {
+        next.textContent = next.textContent.slice(after[0].length);
+        both.appendChild(document.createTextNode(after[0]));
+      }
+    });
+  }
+
+  function shadows() {
+    document.querySelectorAll(SCROLLING).forEach(function (el) {
+      el.classList.toggle("pinnhjb-scrolls", wider(el));
     });
   }
 
@@ -73,6 +90,7 @@
     glue();
     mark();
     fit();
+    shadows();
     wrapCode();
   }
 
