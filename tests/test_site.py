@@ -35,7 +35,8 @@ The content (chapters and theory pages):
 * every raster figure (``img`` in cell outputs, figures and explorer sliders) displays at >= 0.75 of its
   intended width, on the desktop and on a phone (where it scrolls sideways in its own box): its ``width``
   attribute when set (a 2x "retina" PNG carries width = natural / 2), else its inline style width in px (how
-  MyST-NB writes an output's width), else naturalWidth;
+  MyST-NB writes an output's width), else naturalWidth; a figure's box that scrolls fades at the edge past
+  which more of it lies (``pinnhjb.js``), and scrolls without its caption;
 * no raw label or role in the visible text (``eq. (flow_res)``, ``(IHJB_res)``, ``[third]``, ``{eq}``,
   ``{cite}``, ``eq-...``);
 * every chapter links to a page of the book's theory part.
@@ -411,6 +412,26 @@ _FIGURES = (
     % _IS_SHOWN
 )
 
+# boxes that scroll a figure sideways (on a phone) but do not say so: no fade at the edge with more, or with the
+# figure's caption inside the box (it would scroll away as the reader swipes to the rest of the figure)
+_FIGURE_BOXES = (
+    """() => {
+    const shown = (%s);
+    return Array.from(document.querySelectorAll('article img'))
+        .filter(im => shown(im))
+        .map(im => { let el = im.parentElement;
+                     while (el && el.tagName !== 'ARTICLE' && getComputedStyle(el).overflowX === 'visible')
+                         el = el.parentElement;
+                     return {im, el}; })
+        .filter(({el}) => el && el.tagName !== 'ARTICLE' && el.scrollWidth - el.clientWidth > 2)
+        .map(({im, el}) => ({name: (im.alt || '').slice(0, 50), caption: !!el.querySelector('figcaption'),
+                             faded: el.scrollLeft < 1 && el.classList.contains('pinnhjb-more-right') &&
+                                    getComputedStyle(el).maskImage !== 'none'}))
+        .filter(f => f.caption || !f.faded);
+}"""
+    % _IS_SHOWN
+)
+
 _OVERFLOW = """() => {
     const W = innerWidth, out = [];
     for (const el of document.querySelectorAll('body *')) {
@@ -612,6 +633,9 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
     if WIDGET_VIEW_MARK in page.content():
         found["images"].append(f"{where}: a widget view needs the ipywidgets manager, which the site does not load")
 
+    for box in page.evaluate(_FIGURE_BOXES):
+        why = "scrolls with its caption" if box["caption"] else "does not fade at the edge with more"
+        found["figures"].append(f"{where}: the box of '{box['name']}' scrolls sideways but {why}")
     for fig in page.evaluate(_FIGURES):
         if fig["height"] > 0 and fig["nh"] > 0:
             aspect, natural = fig["shown"] / fig["height"], fig["nw"] / fig["nh"]

@@ -16,12 +16,17 @@
 //   line ends with "(";
 // * a display equation or table that still scrolls gets the class pinnhjb-scrolls, which draws the "more this
 //   way" shadows (pinnhjb.css); a box that fits draws none (drawn on every box, the shadows left a faint line at
-//   the right edge of one that fits).
+//   the right edge of one that fits);
+// * on a phone a figure is drawn wider than the column, in a box that scrolls sideways (pinnhjb.css): such a box
+//   gets the class pinnhjb-more-right while more of the figure lies to its right, pinnhjb-more-left while more lies
+//   to its left, and pinnhjb.css fades that edge, so the reader sees there is more to swipe to. The classes
+//   follow the box as it scrolls.
 (function () {
   "use strict";
   var SLACK = 2; // px: MathJax's glyphs overhang their boxes by a fraction of a pixel; that is not "wider"
   var FLOOR = 0.7; // the smallest scale of a display equation: MathJax draws at 1.27 times the text, so 0.89 of it
   var SCROLLING = 'mjx-container[jax="CHTML"][display="true"], .pst-scrollable-table-container';
+  var FIGURES = "div.cell_output, figure a.image-reference, div.pinnhjb-frames"; // the boxes that may scroll a figure
 
   function wider(el) {
     return el.scrollWidth - el.clientWidth > SLACK;
@@ -86,12 +91,25 @@
     });
   }
 
+  function edges(el) {
+    var left = el.scrollLeft, more = el.scrollWidth - el.clientWidth;
+    el.classList.toggle("pinnhjb-more-left", more > SLACK && left > SLACK);
+    el.classList.toggle("pinnhjb-more-right", more > SLACK && left < more - SLACK);
+  }
+
+  function figureEdges() {
+    document.querySelectorAll(FIGURES).forEach(function (el) {
+      if (el.querySelector("img")) edges(el);
+    });
+  }
+
   function adjust() {
     glue();
     mark();
     fit();
     shadows();
     wrapCode();
+    figureEdges();
   }
 
   function whenTypeset() {
@@ -102,6 +120,14 @@
 
   window.addEventListener("load", whenTypeset);
   document.addEventListener("toggle", wrapCode, true); // a hidden cell opened: <details> fires toggle
+  document.addEventListener(
+    "scroll",
+    function (event) {
+      var el = event.target;
+      if (el.nodeType === Node.ELEMENT_NODE && el.matches(FIGURES)) edges(el);
+    },
+    true // scroll events do not bubble: listen as they go down
+  );
   var timer = null;
   window.addEventListener("resize", function () {
     clearTimeout(timer);
