@@ -34,6 +34,7 @@ __all__ = [
     "carried_error",
     "averaged_error",
     "goal_line",
+    "steady_against_finite",
     "VALUE_ERROR",
     "AFTER_STAGE",
 ]
@@ -656,3 +657,47 @@ def goal_line(ax, goal: float, label: str = "goal", color="k"):
             color=color,
         )
     return line
+
+
+def steady_against_finite(system, steady, finite, points: int = 241):
+    """The book's first figure: a PINN trained on the steady-state HJB, one trained on the finite-horizon HJB
+    (its ``V_T(x, 0)``), and the optimal value, along the line through the origin and the state of Omega where
+    the steady-state PINN's value is lowest (found on ``system.grid(61)``). Sized for a phone's column as well
+    as a desktop's. Returns the figure.
+
+    * ``system``: a system with a known ``V*`` (``system.value_star``).
+    * ``steady``: the steady-state solution; its legend gives its ``E / E(V = 0)`` from ``steady.metrics``.
+    * ``finite``: the finite-horizon solution (a chain's last stage); its legend gives its horizon and its
+      ``E / E(V = 0)``.
+    * ``points``: states along the line, from one edge of Omega to the other.
+    """
+    import torch
+
+    if system.value_star is None:
+        raise ValueError(f"{system.name} has no known V*: the figure compares both PINNs with it")
+    grid = system.grid(61).cpu().numpy()
+    low = grid[np.argmin(steady.value(grid))]
+    direction = low / np.abs(low).max()
+    edge = float(np.min(np.abs(system.domain)[:, 1] / np.maximum(np.abs(direction), 1e-12)))
+    s = np.linspace(-edge, edge, points)
+    xs = s[:, None] * direction[None, :]
+    v_star = system.value_star(torch.as_tensor(xs)).cpu().numpy()
+    ratio = lambda sol: sol.metrics["E"] / sol.metrics["E_zero"]  # noqa: E731
+    fig, ax = plt.subplots(figsize=(4.6, 3.6))
+    ax.axhline(0, color="0.6", lw=0.8)
+    ax.plot(s, steady.value(xs), color="C3", lw=2, label=f"steady-state: {ratio(steady):.0e}")
+    label = rf"finite-horizon, $T={finite.horizon:g}$: {ratio(finite):.0e}"
+    ax.plot(s, finite.value(xs), color="C0", lw=4, alpha=0.5, label=label)
+    ax.plot(s, v_star, "k--", lw=1.2, label=r"the optimal value $V^\star$")
+    coords = ",\\ ".join(f"{c:.2g}" for c in direction)
+    ax.set_xlabel(rf"$s$, the state $x = s\,({coords})$")
+    ax.set_ylabel("value")
+    ax.legend(
+        frameon=False,
+        fontsize="small",
+        loc="upper center",
+        title_fontsize="small",
+        title=r"PINN on the HJB, its $E/E(V\equiv0)$",
+    )
+    fig.tight_layout()
+    return fig

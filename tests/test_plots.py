@@ -141,3 +141,27 @@ def test_goal_line_draws_the_bound_and_names_it_at_the_left_edge():
     with pytest.raises(ValueError, match="positive on a log axis"):
         plots.goal_line(ax, 0.0)
     plt.close(fig)
+
+
+def test_the_first_figure_shows_what_the_landing_page_says():
+    """book/intro.md's figure (drawn at build time by matplotlib's plot directive) from the stored quartic runs:
+    along its line the steady-state PINN takes negative values, the finite-horizon one lies on V* to within 1%
+    of its largest value, and the legend gives each one's E / E(V = 0) and the horizon."""
+    from pinnhjb import paper
+
+    system = ph.systems.quartic()
+    steady, finite = paper.load_case("quartic_steady", seed=0), paper.load_case("quartic_extension", seed=0)
+    fig = plots.steady_against_finite(system, steady, finite)
+    ax = fig.axes[0]
+    lines = {line.get_label(): line.get_ydata() for line in ax.get_lines() if not line.get_label().startswith("_")}
+    red, blue, star = (
+        next(v for k, v in lines.items() if k.startswith(p)) for p in ("steady", "finite", "the optimal")
+    )
+    assert red.min() < 0 < star.min() + 1e-12  # no value function: V* >= 0, the steady-state PINN is not
+    assert np.abs(blue - star).max() < 0.01 * star.max()
+    labels = list(lines)
+    assert f"{steady.metrics['E'] / steady.metrics['E_zero']:.0e}" in labels[0]
+    assert f"T={finite.horizon:g}" in labels[1]
+    plt.close(fig)
+    with pytest.raises(ValueError, match="no known V"):
+        plots.steady_against_finite(ph.systems.rigid_body(), steady, finite)
