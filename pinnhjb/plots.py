@@ -683,7 +683,7 @@ def steady_against_finite(system, steady, finite, points: int = 241):
     xs = s[:, None] * direction[None, :]
     v_star = system.value_star(torch.as_tensor(xs)).cpu().numpy()
     ratio = lambda sol: sol.metrics["E"] / sol.metrics["E_zero"]  # noqa: E731
-    fig, ax = plt.subplots(figsize=(4.6, 3.6))
+    fig, ax = plt.subplots(figsize=(4.4, 3.5))
     ax.axhline(0, color="0.6", lw=0.8)
     ax.plot(s, steady.value(xs), color="C3", lw=2, label=f"steady-state: {ratio(steady):.0e}")
     label = rf"finite-horizon, $T={finite.horizon:g}$: {ratio(finite):.0e}"
