@@ -220,20 +220,9 @@ class TimedMeasure:
 
     def __call__(self, solution) -> dict:
         t0 = time.perf_counter()
-        out = measure(self.system, chain_value_fn(solution))
+        out = measure(self.system, solution.value_function())  # V_T(x, 0), on the networks' device
         self.eval_time += time.perf_counter() - t0
         return out
-
-
-def chain_value_fn(solution):
-    """V_T(x, 0) of a chain: its last stage at t = 0 (whose terminal cost holds the earlier stages)."""
-    model = solution.stages[-1].model
-    p = next(model.parameters())
-
-    def fn(x):
-        return model(x.to(p.device, p.dtype), 0.0).to(x.device, x.dtype)
-
-    return fn
 
 
 def pinnhjb_config(method: str, args) -> ph.TrainConfig:

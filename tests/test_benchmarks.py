@@ -170,7 +170,7 @@ def test_timed_measure_is_the_solvers_public_evaluation_hook(speed):
     )
     hook = speed.TimedMeasure(system)
     out = hook(sol)
-    assert out == speed.measure(system, speed.chain_value_fn(sol)) and hook.eval_time > 0.0
+    assert out == speed.measure(system, sol.value_function()) and hook.eval_time > 0.0
     assert {"E", "E_boundary", "value_max_error", "policy_max_error"} <= set(out)
     assert out["E"] == sol.evaluate(101)["E"]  # the same E as the package's own evaluation on the 101 x 101 grid
     # the package's solver is used as it is, not subclassed to override a private method
