@@ -665,7 +665,7 @@ def steady_against_finite(system, steady, finite, points: int = 241):
     the steady-state PINN's value is lowest (found on ``system.grid(61)``). Sized for a phone's column as well
     as a desktop's. Returns the figure.
 
-    * ``system``: a system with a known ``V*`` (``system.value_star``).
+    * ``system``: a system with a known ``V*`` (``system.value_star``), its Omega a box around the origin.
     * ``steady``: the steady-state solution; its legend gives its ``E / E(V = 0)`` from ``steady.metrics``.
     * ``finite``: the finite-horizon solution (a chain's last stage); its legend gives its horizon and its
       ``E / E(V = 0)``.
@@ -678,7 +678,8 @@ def steady_against_finite(system, steady, finite, points: int = 241):
     grid = system.grid(61).cpu().numpy()
     low = grid[np.argmin(steady.value(grid))]
     direction = low / np.abs(low).max()
-    edge = float(np.min(np.abs(system.domain)[:, 1] / np.maximum(np.abs(direction), 1e-12)))
+    half = np.abs(np.asarray(system.domain, dtype=float)).min(axis=1)  # from the origin to Omega's nearer edge
+    edge = float(np.min(half / np.maximum(np.abs(direction), 1e-12)))
     s = np.linspace(-edge, edge, points)
     xs = s[:, None] * direction[None, :]
     v_star = system.value_star(torch.as_tensor(xs)).cpu().numpy()
@@ -688,7 +689,17 @@ def steady_against_finite(system, steady, finite, points: int = 241):
     ax.plot(s, steady.value(xs), color="C3", lw=2, label=f"steady-state: {ratio(steady):.0e}")
     label = rf"finite-horizon, $T={finite.horizon:g}$: {ratio(finite):.0e}"
     ax.plot(s, finite.value(xs), color="C0", lw=4, alpha=0.5, label=label)
-    ax.plot(s, v_star, "k--", lw=1.2, label=r"the optimal value $V^\star$")
+    ax.plot(s, v_star, "k--", lw=1.2)
+    at = int(np.argmin(np.abs(v_star[points // 2 :] - v_star.max() / 3))) + points // 2  # a third of the way up
+    ax.annotate(
+        r"$V^\star$ (dashed)",
+        (s[at], v_star[at]),
+        xytext=(-8, 0),
+        textcoords="offset points",
+        ha="right",
+        va="center",
+        fontsize="small",
+    )
     coords = ",\\ ".join(f"{c:.2g}" for c in direction)
     ax.set_xlabel(rf"$s$, the state $x = s\,({coords})$")
     ax.set_ylabel("value")
@@ -697,7 +708,7 @@ def steady_against_finite(system, steady, finite, points: int = 241):
         fontsize="small",
         loc="upper center",
         title_fontsize="small",
-        title=r"PINN on the HJB, its $E/E(V\equiv0)$",
+        title=r"a PINN on the HJB; its $E/E(V\equiv0)$",
     )
     fig.tight_layout()
     return fig

@@ -154,9 +154,9 @@ def test_the_first_figure_shows_what_the_landing_page_says():
     fig = plots.steady_against_finite(system, steady, finite)
     ax = fig.axes[0]
     lines = {line.get_label(): line.get_ydata() for line in ax.get_lines() if not line.get_label().startswith("_")}
-    red, blue, star = (
-        next(v for k, v in lines.items() if k.startswith(p)) for p in ("steady", "finite", "the optimal")
-    )
+    red, blue = (next(v for k, v in lines.items() if k.startswith(p)) for p in ("steady", "finite"))
+    (star,) = (line.get_ydata() for line in ax.get_lines() if line.get_linestyle() == "--")  # named on the plot
+    assert any(t.get_text().startswith("$V^\\star$") for t in ax.texts)
     assert red.min() < 0 < star.min() + 1e-12  # no value function: V* >= 0, the steady-state PINN is not
     assert np.abs(blue - star).max() < 0.01 * star.max()
     labels = list(lines)
