@@ -684,7 +684,7 @@ def steady_against_finite(system, steady, finite, points: int = 241):
     xs = s[:, None] * direction[None, :]
     v_star = system.value_star(torch.as_tensor(xs)).cpu().numpy()
     ratio = lambda sol: sol.metrics["E"] / sol.metrics["E_zero"]  # noqa: E731
-    fig, ax = plt.subplots(figsize=(4.4, 3.5))
+    fig, ax = plt.subplots(figsize=(4.4, 3.8))
     ax.axhline(0, color="0.6", lw=0.8)
     ax.plot(s, steady.value(xs), color="C3", lw=2, label=f"steady-state: {ratio(steady):.0e}")
     label = rf"finite-horizon, $T={finite.horizon:g}$: {ratio(finite):.0e}"
@@ -694,20 +694,22 @@ def steady_against_finite(system, steady, finite, points: int = 241):
     ax.annotate(
         r"$V^\star$ (dashed)",
         (s[at], v_star[at]),
-        xytext=(-8, 0),
+        xytext=(-16, 0),
         textcoords="offset points",
         ha="right",
         va="center",
-        fontsize="small",
+        fontsize="medium",
     )
     coords = ",\\ ".join(f"{c:.2g}" for c in direction)
     ax.set_xlabel(rf"$s$, the state $x = s\,({coords})$")
     ax.set_ylabel("value")
+    low, high = ax.get_ylim()
+    ax.set_ylim(low, high + 0.4 * (high - low))  # room above the curves for the legend
     ax.legend(
         frameon=False,
-        fontsize="small",
+        fontsize="medium",
         loc="upper center",
-        title_fontsize="small",
+        title_fontsize="medium",
         title=r"a PINN on the HJB; its $E/E(V\equiv0)$",
     )
     fig.tight_layout()
