@@ -150,13 +150,21 @@ def _goals(results: Path) -> list[str]:
         "",
         "## Issue #18's goals",
         "",
-        "The main run's number, and the closest of every stored run (lowest over them; chapter 8's goals table):",
+        "The main run's number, and the closest of every stored run (lowest over them; chapter 8's goals table); a",
+        "goal missed says by how much (the closest number over the goal's):",
         "",
         "| goal | main run | closest stored run | met | that run |",
         "|---|---|---|---|---|",
     ]
-    lines += [f"| {g.text} | {g.show('main')} | {g.show()} | {'yes' if g.met else 'no'} | `{g.run}` |" for g in goals]
+    lines += [f"| {g.text} | {g.show('main')} | {g.show()} | {_verdict(g)} | `{g.run}` |" for g in goals]
     return lines
+
+
+def _verdict(goal) -> str:
+    """ "yes", or "no" with by how much (:attr:`pinnhjb.paper.goals.Goal.missed_by`) where the goal is a bound."""
+    if goal.met:
+        return "yes"
+    return "no" if goal.missed_by is None else f"no, {goal.missed_by:.2g} x"
 
 
 def render(results: Path = RESULTS) -> str:

@@ -311,6 +311,10 @@ def test_dimension_goals_take_the_closest_stored_run(tmp_path):
     assert (four.main, four.closest, four.run, four.met) == (6e-4, 5e-5, "repeats/l", True)
     assert (eight.main, eight.met) == (None, False)
     assert goals["converse n = 12"].closest == 0.3 and not goals["converse n = 12"].met
+    # a missed goal says by how much (the closest over the goal's bound); a met one, or one without a bound, not
+    assert q.missed_by == pytest.approx(2e-3 / 1e-3) and goals["converse n = 12"].missed_by == pytest.approx(300)
+    assert eight.missed_by == pytest.approx(2e-3 / 1e-4)
+    assert v.missed_by is None and goals["closed loops settle"].missed_by is None
     # each names its system, as chapter 8 groups them
     assert [g.system for g in goals.values()] == ["rigid body"] * 7 + ["LQ ladder"] * 2 + ["converse system"]
     assert four.aim == r"$n=4$: value error $\leq10^{-4}$" and v.aim == r"value error $\leq10^{-3}$"
