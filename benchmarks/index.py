@@ -156,15 +156,8 @@ def _goals(results: Path) -> list[str]:
         "| goal | main run | closest stored run | met | that run |",
         "|---|---|---|---|---|",
     ]
-    lines += [f"| {g.text} | {g.show('main')} | {g.show()} | {_verdict(g)} | `{g.run}` |" for g in goals]
+    lines += [f"| {g.text} | {g.show('main')} | {g.show()} | {g.verdict} | `{g.run}` |" for g in goals]
     return lines
-
-
-def _verdict(goal) -> str:
-    """ "yes", or "no" with by how much (:attr:`pinnhjb.paper.goals.Goal.missed_by`) where the goal is a bound."""
-    if goal.met:
-        return "yes"
-    return "no" if goal.missed_by is None else f"no, {goal.missed_by:.2g} x"
 
 
 def render(results: Path = RESULTS) -> str:

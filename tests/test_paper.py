@@ -315,6 +315,7 @@ def test_dimension_goals_take_the_closest_stored_run(tmp_path):
     assert q.missed_by == pytest.approx(2e-3 / 1e-3) and goals["converse n = 12"].missed_by == pytest.approx(300)
     assert eight.missed_by == pytest.approx(2e-3 / 1e-4)
     assert v.missed_by is None and goals["closed loops settle"].missed_by is None
+    assert (q.verdict, eight.verdict, v.verdict) == ("no, 2 x", "no, 20 x", "yes")
     # each names its system, as chapter 8 groups them
     assert [g.system for g in goals.values()] == ["rigid body"] * 7 + ["LQ ladder"] * 2 + ["converse system"]
     assert four.aim == r"$n=4$: value error $\leq10^{-4}$" and v.aim == r"value error $\leq10^{-3}$"

@@ -73,6 +73,14 @@ class Goal:
         """``text`` after the system's name: ``"value error $\\leq10^{-3}$"``, ``"$n=6$: value error ..."``."""
         return self.text[len(self.system) :].lstrip(",: ")
 
+    @property
+    def verdict(self) -> str:
+        """Whether the goal is met, as chapter 8's table and ``benchmarks/results/index.md`` print it: ``"yes"``,
+        or ``"no"`` with by how much where the goal is a bound (``"no, 1.9 x"``)."""
+        if self.met:
+            return "yes"
+        return "no" if self.missed_by is None else f"no, {self.missed_by:.2g} x"
+
     def show(self, which: str = "closest", note: bool = True) -> str:
         """``main`` or ``closest`` as a page prints it ("–" where there is none), ``closest`` with the ``note``
         in brackets unless ``note=False``."""
