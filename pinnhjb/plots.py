@@ -683,7 +683,10 @@ def steady_against_finite(system, steady, finite, points: int = 241):
     s = np.linspace(-edge, edge, points)
     xs = s[:, None] * direction[None, :]
     v_star = system.value_star(torch.as_tensor(xs)).cpu().numpy()
-    ratio = lambda sol: sol.metrics["E"] / sol.metrics["E_zero"]  # noqa: E731
+
+    def ratio(sol) -> float:  # E / E(V = 0), from the solution's stored metrics
+        return sol.metrics["E"] / sol.metrics["E_zero"]
+
     fig, ax = plt.subplots(figsize=(4.4, 3.8))
     ax.axhline(0, color="0.6", lw=0.8)
     ax.plot(s, steady.value(xs), color="C3", lw=2, label=f"steady-state: {ratio(steady):.0e}")
