@@ -26,6 +26,7 @@ The content (chapters and theory pages):
 * no visible code input block (``div.cell_input pre``, ``div.highlight pre``) scrolls sideways, nor a printed
   output (they wrap in their box); on the desktop none even wraps (``book/_theme/pinnhjb.js`` wraps a block
   wider than its box, as on a phone), nor on the laptop in a chapter: its lines fit the column (77 characters);
+  where a line of code wraps, its other rows hang right of where its code starts, not back at the left edge;
 * every display equation fits its column, on a phone too: ``book/_theme/pinnhjb.js`` draws a wide one smaller,
   down to 0.7 of its size, and beyond that the equation must be written on more lines; and no inline formula is
   wider than its line (one that is gets the class ``pinnhjb-wide`` and scrolls: make it a display equation);
@@ -348,6 +349,44 @@ _CODE = (
 )
 _CODE_SCROLLING = _scrolling(_CODE)
 _CODE_WRAPPED = _scrolling(_CODE, "pre.classList.contains('pinnhjb-wrap')")  # by book/_theme/pinnhjb.js
+# lines of code that wrap (on a phone, all long ones) without their other rows hanging right of where the line's
+# code starts (book/_theme/pinnhjb.js and .css): those rows would read as lines of their own at the left edge
+_CODE_NOT_HANGING = (
+    """() => {
+    const shown = (%s);
+    const blocks = %s;
+    const found = [];
+    for (const pre of blocks.filter(shown)) {
+        const lines = pre.querySelectorAll('span.pinnhjb-line');
+        if (!lines.length) { found.push({where: 'a block of ' + pre.innerText.split('\\n').length
+                                                  + ' lines', line: 'not split into span.pinnhjb-line'}); continue; }
+        for (const line of lines) {
+            const walk = document.createTreeWalker(line, NodeFilter.SHOW_TEXT);
+            let start = null;  // where the line's code starts: its first character that is not a blank
+            for (let t = walk.nextNode(); t && !start; t = walk.nextNode()) {
+                const i = t.data.search(/\\S/);
+                if (i < 0) continue;
+                const r = document.createRange();
+                r.setStart(t, i);
+                r.setEnd(t, i + 1);
+                start = r.getBoundingClientRect();
+            }
+            if (!start) continue;
+            const all = document.createRange();
+            all.selectNodeContents(line);
+            const later = Array.from(all.getClientRects())
+                .filter(b => b.width > 0 && b.top >= start.bottom - 1);
+            const back = later.filter(b => b.left < start.left + 1);
+            if (back.length)
+                found.push({where: 'a line of ' + line.textContent.length + ' characters',
+                            line: line.textContent.trim().slice(0, 60),
+                            by: Math.round(start.left - Math.min(...back.map(b => b.left)))});
+        }
+    }
+    return found;
+}"""
+    % (_IS_SHOWN, _CODE)
+)
 # printed outputs, which wrap in their box (book/_theme/pinnhjb.css)
 _OUTPUT_SCROLLING = _scrolling(
     "Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'))"
@@ -661,6 +700,13 @@ def _sweep_one(v: _Visit, found: dict, theory: set[str]):
                 f"{where}: {c['where']} wraps in a {c['width']} px box: a line too long for the column "
                 f"({c['chars']} chars): {c['line']!r}"
             )
+
+    for c in page.evaluate(_CODE_NOT_HANGING):
+        found["code"].append(
+            f"{where}: {c['where']} wraps back to the left of where its code starts"
+            + (f" (by {c['by']} px)" if "by" in c else "")
+            + f": {c['line']!r}"
+        )
 
     for c in page.evaluate(_EQUATIONS_SCROLLING):
         kind = "an inline formula" if c["inline"] else f"a display equation at font size {c['size'] or 'as drawn'}"

@@ -10,6 +10,14 @@
 //   which fit the column from 1280 px up, but not a phone's, nor that of a window 1200 to 1280 px wide (both
 //   sidebars show from 1200 px). Printed outputs always wrap (pinnhjb.css). A hidden cell's code is measured
 //   again when it is opened;
+// * a block of code that wraps (above; on a phone, pinnhjb.css wraps them all) is marked pinnhjb-wrap too, and
+//   each line of a block of code becomes a span.pinnhjb-line that knows its indentation, so that where the
+//   block wraps the rest of a long line hangs right of where the line's code starts (pinnhjb.css), instead of
+//   going back to the left edge, where it would read as a line of its own at the outermost level of Python's
+//   indentation. A line's indentation goes in a span.pinnhjb-lead, which a wrapped block does not break after
+//   (else a long first word would leave a row of blanks) and draws at most MAX_INDENT characters wide (a
+//   continuation aligned under a bracket would fill a phone's row). The text is unchanged, and so is what the
+//   copy button copies;
 // * an inline formula followed by punctuation (".", ",", ";", ":", ")", ...) is glued to it, so that a line never
 //   starts with the full stop of the sentence before: the browser may break a line after an inline box such as
 //   MathJax's formula, and before the punctuation after it. An opening bracket before it is glued too, so that no
@@ -27,6 +35,7 @@
   var FLOOR = 0.7; // the smallest scale of a display equation: MathJax draws at 1.27 times the text, so 0.89 of it
   var SCROLLING = 'mjx-container[jax="CHTML"][display="true"], .pst-scrollable-table-container';
   var FIGURES = "div.cell_output, figure a.image-reference, div.pinnhjb-frames"; // the boxes that may scroll a figure
+  var MAX_INDENT = 16; // characters of indentation a wrapped line of code shows (a phone's line holds about 40)
 
   function wider(el) {
     return el.scrollWidth - el.clientWidth > SLACK;
@@ -59,7 +68,66 @@
     document.querySelectorAll("article pre").forEach(function (el) {
       if (el.closest(".cell_output")) return;
       el.classList.remove("pinnhjb-wrap");
-      if (wider(el)) el.classList.add("pinnhjb-wrap");
+      if (wider(el) || getComputedStyle(el).whiteSpace === "pre-wrap") el.classList.add("pinnhjb-wrap");
+    });
+  }
+
+  function splitLines(pre) {
+    // pygments writes a line's tokens as flat spans and text, and the newlines as text; a token that holds a
+    // newline (a string over several lines) is split in two spans of its class
+    var lines = [[]];
+    Array.prototype.slice.call(pre.childNodes).forEach(function (node) {
+      node.textContent.split("\n").forEach(function (piece, i) {
+        if (i > 0) lines.push([]);
+        if (!piece) return;
+        var part = node.nodeType === Node.TEXT_NODE ? document.createTextNode(piece) : node.cloneNode(false);
+        if (part.nodeType === Node.ELEMENT_NODE) part.textContent = piece;
+        lines[lines.length - 1].push(part);
+      });
+    });
+    return lines;
+  }
+
+  function lead(line, indent) {
+    // the line's first indent characters (blanks, in its first nodes) moved into a span.pinnhjb-lead
+    var left = indent;
+    while (left > 0) {
+      var first = line.firstChild, text = first.textContent, k = Math.min(left, text.length);
+      if (k === text.length) line.removeChild(first);
+      else first.textContent = text.slice(k);
+      left -= k;
+    }
+    var span = document.createElement("span");
+    span.className = "pinnhjb-lead";
+    span.textContent = " ".repeat(indent);
+    span.style.setProperty("--pinnhjb-shrink", Math.min(1, MAX_INDENT / indent).toFixed(4));
+    return span;
+  }
+
+  function hang() {
+    document.querySelectorAll("article div.highlight > pre").forEach(function (pre) {
+      if (pre.dataset.pinnhjbLines !== undefined || pre.closest(".cell_output, .output")) return;
+      var flat = Array.prototype.every.call(pre.childNodes, function (node) {
+        return node.nodeType === Node.TEXT_NODE || (node.nodeType === Node.ELEMENT_NODE && !node.children.length);
+      });
+      pre.dataset.pinnhjbLines = "";
+      if (!flat) return; // not pygments' flat tokens: left as it is
+      var lines = splitLines(pre);
+      pre.textContent = "";
+      lines.forEach(function (parts, i) {
+        var last = i === lines.length - 1;
+        if (last && !parts.length) return; // the block's final newline: no line after it
+        var line = document.createElement("span");
+        line.className = "pinnhjb-line";
+        parts.forEach(function (part) {
+          line.appendChild(part);
+        });
+        var indent = /^ */.exec(line.textContent)[0].length;
+        line.style.setProperty("--pinnhjb-indent", Math.min(indent, MAX_INDENT) + "ch");
+        if (indent > 0) line.insertBefore(lead(line, indent), line.firstChild);
+        pre.appendChild(line);
+        if (!last) pre.appendChild(document.createTextNode("\n"));
+      });
     });
   }
 
@@ -104,6 +172,7 @@
   }
 
   function adjust() {
+    hang();
     glue();
     mark();
     fit();
