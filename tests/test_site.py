@@ -351,8 +351,7 @@ _CODE_SCROLLING = _scrolling(_CODE)
 _CODE_WRAPPED = _scrolling(_CODE, "pre.classList.contains('pinnhjb-wrap')")  # by book/_theme/pinnhjb.js
 # lines of code that wrap (on a phone, all long ones) without their other rows hanging right of where the line's
 # code starts (book/_theme/pinnhjb.js and .css): those rows would read as lines of their own at the left edge
-_CODE_NOT_HANGING = (
-    """() => {
+_CODE_NOT_HANGING = """() => {
     const shown = (%s);
     const blocks = %s;
     const found = [];
@@ -384,9 +383,7 @@ _CODE_NOT_HANGING = (
         }
     }
     return found;
-}"""
-    % (_IS_SHOWN, _CODE)
-)
+}""" % (_IS_SHOWN, _CODE)
 # printed outputs, which wrap in their box (book/_theme/pinnhjb.css)
 _OUTPUT_SCROLLING = _scrolling(
     "Array.from(document.querySelectorAll('div.cell_output div.output > div.highlight > pre'))"
