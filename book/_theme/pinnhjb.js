@@ -187,6 +187,7 @@
     else adjust();
   }
 
+  document.addEventListener("DOMContentLoaded", hang); // needs no typesetting: before the first paint
   window.addEventListener("load", whenTypeset);
   document.addEventListener("toggle", wrapCode, true); // a hidden cell opened: <details> fires toggle
   document.addEventListener(
