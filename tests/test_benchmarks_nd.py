@@ -83,8 +83,9 @@ def test_dimension_lm_points_set_every_n_and_are_checked_before_any_run(tmp_path
     assert "900 LM points per iteration at every n" in (tmp_path / "dimension.md").read_text()
 
 
-def test_dimension_train_scale_flat_origin_budget_and_save(tmp_path, capsys):
-    """--train-scale sets every system's training box, --flat-origin the ansatz, --save stores the chains
+def test_dimension_train_scale_flat_origin_depth_budget_and_save(tmp_path, capsys):
+    """--train-scale sets every system's training box, --flat-origin the ansatz, --depth the hidden layers,
+    --save stores the chains
     (loadable, with that box and ansatz), --budget-states follows the largest errors along their loops and each
     stage after the first says how much of its error it carried; wrong values are refused before any run."""
     import numpy as np
@@ -94,20 +95,26 @@ def test_dimension_train_scale_flat_origin_budget_and_save(tmp_path, capsys):
     dimension = _module("dimension")
     tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "0.5"]
     tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3"]
-    for bad, says in ((["--train-scale", "0.9"], "train_scale must be >= 1"), (["--budget-states", "-1"], ">= 0")):
+    for bad, says in (
+        (["--train-scale", "0.9"], "train_scale must be >= 1"),
+        (["--budget-states", "-1"], ">= 0"),
+        (["--depth", "0"], "--depth must be an integer >= 1; got 0"),
+    ):
         with pytest.raises(SystemExit):
             dimension.main([*tiny, *bad, "--out", str(tmp_path / "bad")])
         assert says in capsys.readouterr().err and not (tmp_path / "bad").exists()
     more = ["--train-scale", "1.5", "--flat-origin", "--cold-start", "--budget-states", "3", "--save"]
-    more += ["--max-horizon", "1"]
+    more += ["--max-horizon", "1", "--depth", "2"]
     dimension.main([*tiny, *more, "--out", str(tmp_path)])
     record = json.loads((tmp_path / "dimension.json").read_text())
     (row,) = record["rows"]
     config = record["meta"]["configs"]["default"]
     assert record["meta"]["train_scale"] == 1.5 and config["flat_origin"] and not config["warm_start"]
+    assert record["meta"]["depth"] == config["depth"] == 2 and row["weights"] == 3 * 24 + 24 + 24 * 24 + 24 + 25
     sol = ph.load(tmp_path / "chains" / "lq_ladder-n2-default.pt")
     np.testing.assert_allclose(sol.system.train_domain, 1.5 * sol.system.domain)
     assert sol.horizon == row["T"] == 1.0 and all(s.model.flat_origin for s in sol.stages)
+    assert sol.config.depth == 2
     first, second = row["chain"]
     assert first["carried"] is None and -1 <= second["carried"] <= 1
     budget = row["budget"]
@@ -116,6 +123,7 @@ def test_dimension_train_scale_flat_origin_budget_and_save(tmp_path, capsys):
     page = (tmp_path / "dimension.md").read_text()
     assert "trained on Omega enlarged 1.5x" in page and "lq_ladder n = 2: of the 3 largest errors" in page
     assert "(flat_origin)" in page and "each stage from fresh weights (no warm start)" in page
+    assert "widths by its rule, 2 hidden layers" in page
     assert "the last stage's error, state by state, correlates" in page
 
 
