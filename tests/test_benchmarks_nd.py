@@ -85,9 +85,9 @@ def test_dimension_lm_points_set_every_n_and_are_checked_before_any_run(tmp_path
 
 def test_dimension_train_scale_flat_origin_depth_budget_and_save(tmp_path, capsys):
     """--train-scale sets every system's training box, --flat-origin the ansatz, --depth the hidden layers,
-    --save stores the chains
-    (loadable, with that box and ansatz), --budget-states follows the largest errors along their loops and each
-    stage after the first says how much of its error it carried; wrong values are refused before any run."""
+    --save stores the chains (loadable, with that box and ansatz), --budget-states follows the largest errors
+    along their loops and each stage after the first says how much of its error it carried; wrong values are
+    refused before any run."""
     import numpy as np
 
     import pinnhjb as ph
