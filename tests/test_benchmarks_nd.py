@@ -145,6 +145,10 @@ def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
     (tmp_path / "dimension.md").unlink()  # the page made again from the JSON alone is the same page
     dimension.main(["--render", str(tmp_path)])
     assert (tmp_path / "dimension.md").read_text() == page
+    record["meta"].pop("depth")  # a run stored before --depth renders as before
+    (tmp_path / "dimension.json").write_text(json.dumps(record))
+    dimension.main(["--render", str(tmp_path)])
+    assert (tmp_path / "dimension.md").read_text() == page
     record["meta"].pop("best_start")
     (tmp_path / "dimension.json").write_text(json.dumps(record))
     with pytest.raises(SystemExit):
