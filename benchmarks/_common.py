@@ -159,7 +159,8 @@ def lm_rule(config: dict) -> str:
 
 
 def add_start_arguments(parser: argparse.ArgumentParser, note: str = "") -> None:
-    """Add ``--cold-start`` and ``--best-start``: how each extension stage starts (``TrainConfig.warm_start``),
+    """Add ``--cold-start``, ``--best-start`` and ``--features-start``: how each extension stage starts
+    (``TrainConfig.warm_start``),
     read back by :func:`warm_start_of`.
 
     * ``parser``: the script's parser.
@@ -176,14 +177,22 @@ def add_start_arguments(parser: argparse.ArgumentParser, note: str = "") -> None
         help="each stage trained from the stage before's weights and from fresh ones, the lower E kept "
         f"(TrainConfig.warm_start='best'; twice the training){note}",
     )
+    parser.add_argument(
+        "--features-start",
+        action="store_true",
+        help="each stage from the stage before's weights with the last layer zero, so that it starts at its "
+        f"terminal cost (TrainConfig.warm_start='features'){note}",
+    )
 
 
 def warm_start_of(parser: argparse.ArgumentParser, args) -> bool | str:
-    """``TrainConfig.warm_start`` from :func:`add_start_arguments`'s flags (True when neither is given); both given
-    is refused through ``parser.error``."""
-    if args.cold_start and args.best_start:
-        parser.error("--cold-start and --best-start: choose one (--best-start tries the fresh start too)")
-    return "best" if args.best_start else not args.cold_start
+    """``TrainConfig.warm_start`` from :func:`add_start_arguments`'s flags (True when none is given); two given
+    are refused through ``parser.error``."""
+    given = [flag for flag in ("cold_start", "best_start", "features_start") if getattr(args, flag)]
+    if len(given) > 1:
+        flags = " and ".join("--" + flag.replace("_", "-") for flag in given)
+        parser.error(f"{flags}: choose one")
+    return "best" if args.best_start else "features" if args.features_start else not args.cold_start
 
 
 def other_attempt(stage, keys: tuple = ()) -> dict | None:

@@ -335,6 +335,7 @@ def figure(rows: list[dict], path) -> None:
     plt.close(fig)
 
 
+FEATURES = "each stage from the stage before with its last layer zero (it starts at its terminal cost), "
 PAGE_KEYS = {  # what write_page needs in a run's meta (lm_points: from the config; RESUME_DEFAULTS: their default)
     *("seed", "threads", "workers", "machine", "torch", "created", "config", "deepxde", "against", "compare"),
     *("step", "converse_step", "ratio", "max_horizon", "points", "width", "retries", "loop_share", "train_scale"),
@@ -401,6 +402,7 @@ def write_page(record: dict, out: Path) -> list[str]:
         f"{f'the first terminal cost {TERMINALS[a.terminal]}, ' if a.terminal != 'zero' else ''}"
         f"{'each stage from fresh weights (no warm start), ' if a.cold_start else ''}"
         f"{'each stage from the stage before and from fresh weights, the lower E kept, ' if a.best_start else ''}"
+        f"{FEATURES if a.features_start else ''}"
         f"{f'LM{rule}, ' if rule else ''}"
         f"{_resumed_clause(meta)}seed {a.seed}, {a.threads} thread(s) per run, "
         f"{a.workers or 1} run(s) at a time, {a.machine}; torch "
@@ -448,7 +450,7 @@ RESUME_SAME = (  # the settings a run carried on with --resume shares with the r
     *("train_scale", "flat_origin", "budget_states", "lm_points", "config", "device", "terminal", "depth"),
 )
 # settings added since: what a chain saved before them was trained with
-RESUME_DEFAULTS = {"terminal": "zero", "depth": None}
+RESUME_DEFAULTS = {"terminal": "zero", "depth": None, "features_start": False}
 
 
 def _resumed(p, args, tasks: list[dict], settings: dict) -> list[str]:
@@ -704,6 +706,7 @@ def main(argv=None) -> int:
         "terminal": args.terminal,
         "cold_start": args.cold_start,
         "best_start": args.best_start,
+        "features_start": args.features_start,
         "lm_points": args.lm_points,
         "budget_states": args.budget_states,
         "workers": args.workers,

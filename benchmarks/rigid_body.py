@@ -75,6 +75,7 @@ TERMINAL = 0.5 * np.eye(6)  # their terminal cost abs(v)^2/2 + abs(w)^2/2 as x'P
 FLAT = ", grad V(0, t) = 0 built into the ansatz (flat_origin)"
 COLD = ", each stage from fresh weights (no warm start)"
 BEST = ", each stage trained from the stage before's weights and from fresh ones, the lower E kept (warm_start='best')"
+FEATURES = ", each stage from the stage before's weights with the last layer zero (warm_start='features')"
 POOL = ph.TrainConfig().pool_size  # the recipe's training states per stage
 
 
@@ -641,7 +642,7 @@ def mean_table(meta: dict, result: dict) -> str:
 
 def _start(args) -> str:
     """How the stages trained here started, for the page's header."""
-    start = BEST if args.best_start else COLD if args.cold_start else ""
+    start = BEST if args.best_start else COLD if args.cold_start else FEATURES if args.features_start else ""
     return f"{start} from here on" if start and args.resume else start
 
 

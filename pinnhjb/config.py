@@ -99,7 +99,9 @@ class TrainConfig:
       stage does. From fresh weights (False) it does not, but each stage fits its whole correction again and can
       fit it worse (chapter 9, section 3). ``"best"``: train each extension stage both ways on the same points
       and keep the one with the lower E (the metrics' ``"E"``, the paper's own check, no reference needed); twice
-      the training, and the attempt not kept is listed, with its metrics, in ``Stage.rejected``.
+      the training, and the attempt not kept is listed, with its metrics, in ``Stage.rejected``. ``"features"``:
+      from the previous stage's weights with the last layer zero, so that the stage starts at its terminal cost
+      (V = V_prev) and keeps the previous stage's hidden layers as its first features (chapter 9, section 3).
     * ``retries``: extra attempts at a stage whose training failed, each with a new seed (the stage's seed +
       1000 per attempt); the attempt with the lowest final training loss is kept. The first stage (the only one
       that starts from random weights, where a bad local minimum is likely) is always tried ``1 + retries``
@@ -176,8 +178,10 @@ class TrainConfig:
                     "True or False (True needs ansatz=True)",
                 ),
                 "warm_start": (
-                    isinstance(self.warm_start, bool) or self.warm_start == "best",
-                    "True, False or 'best'",
+                    isinstance(self.warm_start, bool)
+                    or self.warm_start == "best"
+                    or (self.warm_start == "features" and self.ansatz),
+                    "True, False, 'best' or 'features' ('features' needs ansatz=True)",
                 ),
                 "activation": (
                     isinstance(self.activation, str) and self.activation in ACTIVATIONS,

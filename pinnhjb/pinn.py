@@ -73,6 +73,14 @@ class MLP(nn.Module):
     def forward(self, z: Tensor) -> Tensor:
         return self.layers(z).squeeze(-1)
 
+    def zero_output_(self) -> MLP:
+        """Zero the last layer in place, so that the network is 0 everywhere and keeps its hidden layers (the
+        ``"features"`` start of :class:`~pinnhjb.TrainConfig`'s ``warm_start``). Returns the network."""
+        with torch.no_grad():
+            self.layers[-1].weight.zero_()
+            self.layers[-1].bias.zero_()
+        return self
+
     def tangent(self, z: Tensor, dz: Tensor) -> tuple[Tensor, Tensor]:
         """The output and its derivative along ``dz`` at ``z`` (both (M, d)): forward mode, layer by layer, with
         the closed-form derivatives of :data:`ACTIVATION_DERIVATIVES` (``torch.func.jvp`` of other activations).

@@ -253,7 +253,7 @@ class FiniteHorizonSolver(_Solver):
         * ``init``: the previous stage's network (None for the first stage).
         * ``base_loss``: the final training loss a rise is measured from, as ``config.retry_against`` names
           (:meth:`_base_loss`; None for the first stage).
-        * ``warm``: start from ``init``'s weights; else from fresh ones.
+        * ``warm``: start from ``init``'s weights (``"features"``: with the last layer zero); else from fresh ones.
         """
         cfg = self.config
         attempts: list[Stage] = []
@@ -278,6 +278,8 @@ class FiniteHorizonSolver(_Solver):
             model = model.to(device=self.device, dtype=self.dtype)
             if init is not None and warm:
                 model.net.load_state_dict(init.net.state_dict())
+                if warm == "features":  # the stage starts at its terminal cost, on the stage before's features
+                    model.net.zero_output_()
             desc = f"{self.system.name} T={start:g}->{start + length:g}"
             desc += f", attempt {attempt + 1}" if attempt else ""
             desc += ", fresh" if init is not None and not warm and cfg.warm_start == "best" else ""

@@ -145,7 +145,8 @@ def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
     (tmp_path / "dimension.md").unlink()  # the page made again from the JSON alone is the same page
     dimension.main(["--render", str(tmp_path)])
     assert (tmp_path / "dimension.md").read_text() == page
-    record["meta"].pop("depth")  # a run stored before --depth renders as before
+    record["meta"].pop("depth")  # a run stored before --depth or --features-start renders as before
+    record["meta"].pop("features_start")
     (tmp_path / "dimension.json").write_text(json.dumps(record))
     dimension.main(["--render", str(tmp_path)])
     assert (tmp_path / "dimension.md").read_text() == page
@@ -155,6 +156,22 @@ def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
         dimension.main(["--render", str(tmp_path)])
     assert "older dimension.py (its meta has no best_start)" in capsys.readouterr().err
     assert (tmp_path / "dimension.md").read_text() == page  # a refused render leaves the page as it was
+
+
+def test_dimension_features_start_begins_each_stage_at_its_terminal_cost_and_says_so(tmp_path, capsys):
+    dimension = _module("dimension")
+    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "1"]
+    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3", "--budget-states", "0"]
+    with pytest.raises(SystemExit):
+        dimension.main([*tiny, "--features-start", "--cold-start", "--out", str(tmp_path / "bad")])
+    assert "--cold-start and --features-start: choose one" in capsys.readouterr().err
+    dimension.main([*tiny, "--features-start", "--save", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "dimension.json").read_text())
+    assert record["meta"]["configs"]["default"]["warm_start"] == "features" and record["meta"]["features_start"]
+    sol = ph.load(tmp_path / "chains" / "lq_ladder-n2-default.pt", ph.systems.lq_ladder(1))
+    assert sol.config.warm_start == "features" and len(sol.stages) == 2
+    page = (tmp_path / "dimension.md").read_text()
+    assert "each stage from the stage before with its last layer zero (it starts at its terminal cost)" in page
 
 
 def test_horizon_floor_is_the_riccati_ode_s_error_and_falls_with_the_horizon():

@@ -618,9 +618,29 @@ def test_best_start_needs_E_from_the_hook_and_keeps_what_trained(pendulum):
 
 
 @pytest.mark.parametrize("bad", ["cold", 1, None])
-def test_warm_start_must_be_a_bool_or_best(bad):
-    with pytest.raises(ValueError, match=r"warm_start=.*expected True, False or 'best'"):
+def test_warm_start_must_be_a_bool_best_or_features(bad):
+    with pytest.raises(ValueError, match=r"warm_start=.*expected True, False, 'best' or 'features'"):
         ph.TrainConfig(warm_start=bad)
+
+
+def test_features_start_needs_the_ansatz():
+    with pytest.raises(ValueError, match=r"'features' needs ansatz=True"):
+        ph.TrainConfig(warm_start="features", ansatz=False)
+
+
+def test_features_start_begins_at_the_terminal_cost(pendulum, tmp_path):
+    # warm_start="features": the previous stage's hidden layers, the last layer zero; untrained (phases=()), the
+    # new stage is its terminal cost at every time, V = V_prev(., 0)
+    first = solver(system=pendulum, phases=adam(steps=3)).solve(0.5)
+    extended = solver(system=pendulum, phases=(), warm_start="features").extend(first, to=1.0)
+    new, old = extended.stages[1].model.net.layers, first.stages[0].model.net.layers
+    assert all(torch.equal(a, b) for a, b in zip(new[:-1].parameters(), old[:-1].parameters()))
+    assert not new[-1].weight.any() and not new[-1].bias.any() and old[-1].weight.any()
+    x = (torch.rand(64, 2) - 0.5).to(new[-1].weight.dtype)
+    for t in (0.0, 0.25):
+        assert torch.equal(extended.stages[1].model(x, t), first.stages[0].model(x, 0.0))
+    loaded = ph.load(ph.save(extended, tmp_path / "features.pt"), pendulum)
+    assert loaded.config.warm_start == "features"
 
 
 @pytest.mark.parametrize("failure", [KeyboardInterrupt, RuntimeError])
