@@ -75,7 +75,7 @@ class MLP(nn.Module):
 
     def zero_output_(self) -> MLP:
         """Zero the last layer in place, so that the network is 0 everywhere and keeps its hidden layers (the
-        ``"features"`` start of :class:`~pinnhjb.TrainConfig`'s ``warm_start``). Returns the network."""
+        ``"features"`` start of :class:`~pinnhjb.config.TrainConfig`'s ``warm_start``). Returns the network."""
         with torch.no_grad():
             self.layers[-1].weight.zero_()
             self.layers[-1].bias.zero_()
