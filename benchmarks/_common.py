@@ -160,8 +160,7 @@ def lm_rule(config: dict) -> str:
 
 def add_start_arguments(parser: argparse.ArgumentParser, note: str = "") -> None:
     """Add ``--cold-start``, ``--best-start`` and ``--features-start``: how each extension stage starts
-    (``TrainConfig.warm_start``),
-    read back by :func:`warm_start_of`.
+    (``TrainConfig.warm_start``), read back by :func:`warm_start_of`.
 
     * ``parser``: the script's parser.
     * ``note``: a clause added to both helps (for example what the flags mean with ``--resume``).
