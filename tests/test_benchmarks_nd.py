@@ -127,10 +127,15 @@ def test_dimension_train_scale_flat_origin_depth_budget_and_save(tmp_path, capsy
     assert "the last stage's error, state by state, correlates" in page
 
 
+TINY_LADDER = [  # dimension.py: the ladder at n = 2, two stages of a few LM iterations, no comparison
+    *("--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "1"),
+    *("--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3", "--budget-states", "0"),
+]
+
+
 def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
     dimension = _module("dimension")
-    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "1"]
-    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3", "--budget-states", "0"]
+    tiny = list(TINY_LADDER)
     with pytest.raises(SystemExit):
         dimension.main([*tiny, "--best-start", "--cold-start", "--out", str(tmp_path / "bad")])
     assert "choose one" in capsys.readouterr().err and not (tmp_path / "bad").exists()
@@ -160,8 +165,7 @@ def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
 
 def test_dimension_features_start_begins_each_stage_at_its_terminal_cost_and_says_so(tmp_path, capsys):
     dimension = _module("dimension")
-    tiny = ["--ladder", "2", "--converse", "", "--compare", "", "--step", "0.5", "--max-horizon", "1"]
-    tiny += ["--points", "256", "--threads", "1", "--no-progress", "--lm-steps", "3", "--budget-states", "0"]
+    tiny = list(TINY_LADDER)
     with pytest.raises(SystemExit):
         dimension.main([*tiny, "--features-start", "--cold-start", "--out", str(tmp_path / "bad")])
     assert "--cold-start and --features-start: choose one" in capsys.readouterr().err
