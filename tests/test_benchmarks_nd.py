@@ -135,7 +135,7 @@ TINY_LADDER = [  # dimension.py: the ladder at n = 2, two stages of a few LM ite
 
 def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
     dimension = _module("dimension")
-    tiny = list(TINY_LADDER)
+    tiny = TINY_LADDER  # read only
     with pytest.raises(SystemExit):
         dimension.main([*tiny, "--best-start", "--cold-start", "--out", str(tmp_path / "bad")])
     assert "choose one" in capsys.readouterr().err and not (tmp_path / "bad").exists()
@@ -165,7 +165,7 @@ def test_dimension_best_start_keeps_the_lower_E_and_says_so(tmp_path, capsys):
 
 def test_dimension_features_start_begins_each_stage_at_its_terminal_cost_and_says_so(tmp_path, capsys):
     dimension = _module("dimension")
-    tiny = list(TINY_LADDER)
+    tiny = TINY_LADDER  # read only
     with pytest.raises(SystemExit):
         dimension.main([*tiny, "--features-start", "--cold-start", "--out", str(tmp_path / "bad")])
     assert "--cold-start and --features-start: choose one" in capsys.readouterr().err
