@@ -15,6 +15,10 @@ the value are measured on ``--points`` seeded uniform states of Omega:
 * **Carried on.** ``--resume DIR`` extends the chains a run saved (``DIR`` its ``--out``, with ``--save``: every
   stage is saved as it ends, so a run cut short counts too) to ``--max-horizon``, with the same settings (checked
   before any work), its stages and wall time continued;
+* **The mean of chains.** ``--mean RUN RUN ...`` trains nothing: it measures the mean V = (1/K) sum_k V_k
+  (:class:`pinnhjb.AveragedSolution`) of the chains K stored runs of one recipe saved (``--save``; the runs differ
+  in seed alone), on the states of every member's seed, and writes it as a run whose rows are the mean's (the worst
+  of those states) and whose wall time is its members' summed;
 * at the dimensions ``--compare``, our first-order recipe ``adam_lbfgs`` and DeepXDE beside the default, on both
   systems. DeepXDE (``deepxde``) is the chain a user would build with its API (:mod:`_deepxde`: 3 x 100 in float32,
   ``adam_lbfgs``'s Adam and L-BFGS budgets a stage, soft conditions), extended with the same stages and the same
@@ -27,6 +31,7 @@ serial run at the same ``--threads``.
 
     .venv/bin/python benchmarks/dimension.py                       # ladder n = 2 ... 16, converse n = 2 ... 12
     .venv/bin/python benchmarks/dimension.py --ladder 2,4 --converse 4 --compare "" --out /tmp/dim
+    .venv/bin/python benchmarks/dimension.py --mean RUN RUN --out /tmp/dim-mean   # runs saved with --save
     benchmarks/.venv/bin/python benchmarks/dimension.py --ladder 6 --converse 6 --against deepxde --width 24 \
         --max-horizon 8 --workers 2 --threads 1 --out benchmarks/results/repeats/deepxde-n6  # DeepXDE, its venv
 
@@ -47,6 +52,7 @@ import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/
 import numpy as np
 import torch
 from _common import (  # benchmarks/_common.py, a sibling
+    RESULTS,
     TERMINALS,
     add_lm_arguments,
     add_start_arguments,
@@ -63,7 +69,7 @@ from _common import (  # benchmarks/_common.py, a sibling
 import pinnhjb as ph
 from pinnhjb.executor import map_runs
 from pinnhjb.metrics import infinite_horizon_residual
-from pinnhjb.paper import dimension_states
+from pinnhjb.paper import dimension_rows, dimension_states
 from pinnhjb.pinn import gradient
 from pinnhjb.storage import provenance
 
@@ -369,6 +375,8 @@ def write_page(record: dict, out: Path) -> list[str]:
     so that a stored page can be made again from its JSON (``--render``); returns the page's lines."""
     if {"meta", "rows", "exponents", "not_run"} - set(record):
         raise ValueError("the record lacks meta, rows, exponents or not_run (an older dimension.py's, or not one)")
+    if "members" in record["meta"]:
+        return mean_page(record, out)
     meta, rows, missing, fits = record["meta"], record["rows"], record["not_run"], record["exponents"]
     default = [r for r in rows if r["recipe"] == "default"]
     lacking = sorted(PAGE_KEYS - set(meta))
@@ -481,6 +489,167 @@ def _resumed(p, args, tasks: list[dict], settings: dict) -> list[str]:
     return sorted(set(machines))
 
 
+# the members of a mean share these settings (the seed apart: RESUME_SAME less what a check may change)
+MEAN_SAME = tuple(k for k in RESUME_SAME if k not in ("seed", "threads", "budget_states"))
+MEAN_SAME += ("cold_start", "best_start", "features_start")
+MEAN_OPTIONS = {"mean", "out", "no_progress", "threads"}  # what a mean takes beside --mean (none of the training's)
+
+
+def _members(p, args) -> tuple[list[dict], dict]:
+    """The stored runs ``--mean`` names, checked before any work: one recipe (the same settings but the seed),
+    different seeds, the same default-recipe rows (system, n), each row's chain saved and ending where its row
+    did. Returns the runs' records and, by (system, n), the system and the loaded chains."""
+    if len(args.mean) < 2:
+        p.error(f"--mean needs two or more stored runs; got {len(args.mean)}")
+    training = sorted(k for k, v in vars(args).items() if k not in MEAN_OPTIONS and v != p.get_default(k))
+    if training:
+        flags = ", ".join("--" + k.replace("_", "-") for k in training)
+        p.error(f"--mean trains nothing: {flags} would be ignored; its members' runs set them")
+    if args.out.resolve() == RESULTS.resolve():
+        p.error(f"--mean: pass --out (a folder other than {RESULTS}, where the main run's page stays)")
+    runs = []
+    for folder in args.mean:
+        stored = folder / "dimension.json"
+        if not stored.is_file():
+            p.error(f"--mean: no stored run at {stored}")
+        runs.append(json.loads(stored.read_text()))
+        if "members" in runs[-1]["meta"]:
+            p.error(f"--mean: {folder} is itself a mean; name its members")
+    first = runs[0]["meta"]
+    for folder, run in zip(args.mean[1:], runs[1:]):
+        meta = run["meta"]
+        if differ := [
+            k for k in MEAN_SAME if meta.get(k, RESUME_DEFAULTS.get(k)) != first.get(k, RESUME_DEFAULTS.get(k))
+        ]:
+            p.error(f"--mean: {folder} differs from {args.mean[0]} in {', '.join(differ)}; a mean is of one recipe")
+    seeds = [run["meta"]["seed"] for run in runs]
+    if len(set(seeds)) < len(seeds):
+        p.error(f"--mean: the runs must differ in seed; got seeds {seeds}")
+    keys = [sorted(dimension_rows(run)) for run in runs]
+    if not keys[0]:
+        p.error(f"--mean: {args.mean[0]} has no measured row of the default recipe")
+    for folder, k in zip(args.mean[1:], keys[1:]):
+        if k != keys[0]:
+            p.error(f"--mean: {folder} measured other systems or n than {args.mean[0]}: {k} against {keys[0]}")
+    cases = {}
+    for key in keys[0]:
+        system = BUILDERS[key[0]](key[1], first["train_scale"])
+        chains = []
+        for folder, run in zip(args.mean, runs):
+            path = folder / "chains" / chain_name(system, "default")
+            try:
+                sol = ph.load(path, system=system, device="cpu")
+            except (OSError, ValueError) as exc:
+                p.error(f"--mean: cannot load the chain {path} (its run saves chains with --save): {exc}")
+            end = dimension_rows(run)[key]["T"]
+            if abs(sol.horizon - end) > 1e-9:
+                p.error(f"--mean: the chain {path} ends at T = {sol.horizon:g}, its run's row at T = {end:g}")
+            chains.append(sol)
+        if len({round(c.horizon, 9) for c in chains}) > 1:
+            p.error(f"--mean: the chains of {key[0]} n = {key[1]} end at different T: a mean is of one T")
+        cases[key] = (system, chains)
+    return runs, cases
+
+
+def mean_main(p, args) -> int:
+    """``--mean``: the mean of stored chains, measured on the states of every member's seed; written as a run
+    whose rows are the mean's (the worst of those states) and whose wall time is its members' summed."""
+    runs, cases = _members(p, args)
+    first = runs[0]["meta"]
+    recipe = ph.TrainConfig.from_dict(first["config"])
+    seeds = [run["meta"]["seed"] for run in runs]
+    start, rows = time.perf_counter(), []
+    for (name, n), (system, chains) in cases.items():
+        members = [dimension_rows(run)[(name, n)] for run in runs]
+        mean = ph.AveragedSolution(chains)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ev = mean.evaluate(recipe.eval_points_per_dim)
+        on = [{"seed": seed, **true_errors(system, mean, first["points"], seed)} for seed in seeds]
+        row = {
+            "system": name,
+            "recipe": "default",
+            "n": n,
+            "m": system.m,
+            "weights": sum(m["weights"] for m in members),
+            "step": members[0]["step"],
+            "T": chains[0].horizon,
+            "stages": members[0]["stages"],
+            "E_ratio": ev["E"] / ev["E_zero"],
+            "wall_s": sum(m["wall_s"] for m in members),
+            "rejected": sum(m.get("rejected", 0) for m in members),
+            "value_rel_error": max(o["value_rel_error"] for o in on),
+            "grad_mean_rel_error": max(o["grad_mean_rel_error"] for o in on),
+            "horizon_floor": members[0].get("horizon_floor"),
+            "on_seeds": on,
+            "members": [
+                {"run": str(folder), "seed": seed, "machine": run["meta"]["machine"], "threads": run["meta"]["threads"]}
+                | {k: m[k] for k in ("T", "E_ratio", "value_rel_error", "grad_mean_rel_error", "wall_s")}
+                for folder, seed, run, m in zip(args.mean, seeds, runs, members)
+            ],
+        }
+        print(f"{name} n={n} the mean of {len(chains)}: {row['value_rel_error']:.2e} (worst of seeds {seeds})")
+        rows.append(row)
+    meta = {k: first[k] for k in PAGE_KEYS | set(MEAN_SAME) if k in first}
+    meta.update(provenance(), seed=seeds, threads=args.threads, machine=machine("cpu"), workers=None)
+    meta.update(members=[str(f) for f in args.mean], check_wall_s=time.perf_counter() - start)
+    record = {"meta": meta, "rows": rows, "exponents": {}, "not_run": []}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "dimension.json").write_text(json.dumps(record))
+    print("\n".join(write_page(record, args.out)))
+    return 0
+
+
+def mean_page(record: dict, out: Path) -> list[str]:
+    """Write ``out/dimension.md`` for a ``--mean`` run from its record: the members, the mean on each member's
+    states, and the ladder's goal; returns the page's lines."""
+    meta, rows = record["meta"], record["rows"]
+    lines = [
+        "# Error against the dimension: the mean of chains (generated by `benchmarks/dimension.py --mean`; do not "
+        "edit)",
+        "",
+        f"The mean V = (1/K) sum_k V_k (`ph.AveragedSolution`) of the K = {len(meta['members'])} chains below, one "
+        f"recipe from seeds {', '.join(map(str, meta['seed']))}, each trained and saved by its own stored run (its "
+        "page gives the recipe); nothing is trained here. Its wall time is the members' training time, summed (each "
+        f"on its own machine). Measured on {meta['machine']} in {meta['check_wall_s']:.0f} s; torch {meta['torch']}; "
+        f"created {meta['created']}. Errors against the exact V* on {meta['points']} seeded uniform states of Omega: "
+        "each member on its own seed's states (its run's row), the mean on every member's, the worst of them "
+        "its row.",
+        "",
+        "| system | n | chain | seed | machine | T | E / E(V = 0) | max abs(V - V*) / max V* | "
+        "mean rel. error of grad V | wall s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        head = f"| {r['system']} | {r['n']} |"
+        for m in r["members"]:
+            lines.append(
+                f"{head} `{m['run']}` | {m['seed']} | {m['machine']}; {m['threads']} thread(s) | {m['T']:g} | "
+                f"{m['E_ratio']:.1e} | {m['value_rel_error']:.2e} | {m['grad_mean_rel_error']:.1e} | "
+                f"{m['wall_s']:.0f} |"
+            )
+        for o in r["on_seeds"]:
+            lines.append(
+                f"{head} the mean, on seed {o['seed']}'s states | | | {r['T']:g} | | {o['value_rel_error']:.2e} | "
+                f"{o['grad_mean_rel_error']:.1e} | |"
+            )
+        lines.append(
+            f"{head} the mean (the worst) | | | {r['T']:g} | {r['E_ratio']:.1e} | {r['value_rel_error']:.2e} | "
+            f"{r['grad_mean_rel_error']:.1e} | {r['wall_s']:.0f} (sum) |"
+        )
+    ladder = [r for r in rows if r["system"] == "lq_ladder"]
+    if ladder:
+        worst = max(ladder, key=lambda r: r["value_rel_error"])
+        met = "met" if worst["value_rel_error"] <= 1e-4 else "missed"
+        lines += [
+            "",
+            f"Goal max relative V error <= 1e-4 on the ladder, the mean: {met} at n = "
+            f"{', '.join(str(r['n']) for r in ladder)} (worst {worst['value_rel_error']:.2e} at n = {worst['n']}).",
+        ]
+    (out / "dimension.md").write_text("\n".join(lines) + "\n")
+    return lines
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--ladder", default="2,4,6,8,12,16", help="state dimensions n of the LQ ladder (even)")
@@ -570,6 +739,15 @@ def main(argv=None) -> int:
         help="the default recipe's LM points per iteration at every n (its last level; default: the width rule's)",
     )
     p.add_argument(
+        "--mean",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="RUN",
+        help="train nothing: measure the mean (ph.AveragedSolution) of the chains two or more stored runs of one "
+        "recipe saved (their --out folders, run with --save; they differ in seed alone)",
+    )
+    p.add_argument(
         "--render",
         type=Path,
         default=None,
@@ -584,6 +762,8 @@ def main(argv=None) -> int:
         except (OSError, ValueError) as exc:
             p.error(f"--render {args.render}: {exc}")
         return 0
+    if args.mean is not None:
+        return mean_main(p, args)
     settings = lm_settings(args)  # the default recipe's LM stopping rule
     if args.lm_points is not None:
         settings["points"] = args.lm_points

@@ -330,6 +330,15 @@ def test_dimension_goals_take_the_closest_stored_run(tmp_path):
     assert (v.closest, v.run, v.met) == (8e-4, "repeats/mean", True)
     assert v.show() == "8.00e-04 (the mean of 2 chains, 3000 s of training summed)"
     assert goals["value error within 30 min"].run == "repeats/quick"  # its time is its members' summed
+    assert goals["ladder n = 4"].note == ""  # one chain
+    # and so is a mean of the ladder's chains (benchmarks/dimension.py --mean)
+    ladder = _dimension(("lq_ladder", 8, 9e-5))
+    ladder["rows"][0].update(members=[{"seed": 0}, {"seed": 1}], wall_s=1500.0)
+    (results / "repeats" / "ladder-mean").mkdir()
+    (results / "repeats" / "ladder-mean" / "dimension.json").write_text(json.dumps(ladder))
+    eight = {g.key: g for g in paper.dimension_goals(out)}["ladder n = 8"]
+    assert (eight.closest, eight.run, eight.met) == (9e-5, "repeats/ladder-mean", True)
+    assert eight.show() == "9.00e-05 (the mean of 2 chains, 1500 s of training summed)"
 
 
 def test_dimension_states_are_the_seeded_uniform_states_of_omega():

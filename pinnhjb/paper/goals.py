@@ -220,6 +220,12 @@ def dimension_goals(out: Path | None = None) -> list[Goal]:
     def best(system: str, n: int) -> tuple[float, str]:
         return min((r["value_rel_error"], k) for k, r in rows if (r["system"], r["n"]) == (system, n))
 
+    def note(run: str, system: str, n: int) -> str:  # a mean of chains (dimension.py --mean) says so
+        row = next(r for k, r in rows if k == run and (r["system"], r["n"]) == (system, n))
+        if not row.get("members"):
+            return ""
+        return f"the mean of {len(row['members'])} chains, {row['wall_s']:.0f} s of training summed"
+
     for n in sorted({r["n"] for _, r in rows if r["system"] == "lq_ladder"}):
         v, k = best("lq_ladder", n)
         mine = main_rows.get(("lq_ladder", n))
@@ -231,6 +237,7 @@ def dimension_goals(out: Path | None = None) -> list[Goal]:
                 v,
                 k,
                 v <= GOAL_LADDER,
+                note=note(k, "lq_ladder", n),
                 bound=GOAL_LADDER,
             )
         )
@@ -245,6 +252,7 @@ def dimension_goals(out: Path | None = None) -> list[Goal]:
                 v,
                 k,
                 v <= GOAL_CONVERSE,
+                note=note(k, "converse", 12),
                 bound=GOAL_CONVERSE,
             )
         )
