@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 from pathlib import Path
@@ -192,6 +193,29 @@ def warm_start_of(parser: argparse.ArgumentParser, args) -> bool | str:
         flags = " and ".join("--" + flag.replace("_", "-") for flag in given)
         parser.error(f"{flags}: choose one")
     return "best" if args.best_start else "features" if args.features_start else not args.cold_start
+
+
+def stored_members(parser: argparse.ArgumentParser, args, options: set, page: str, is_mean) -> list[dict]:
+    """The stored runs ``--mean`` names (``args.mean``), read and checked before any work: two or more, no flag of
+    the training's given (none outside ``options``), an ``--out`` of their own, each a run's ``page`` (its JSON
+    record, e.g. ``"dimension.json"``) and not itself a mean (``is_mean(record)``). Returns their records."""
+    if len(args.mean) < 2:
+        parser.error(f"--mean needs two or more stored runs; got {len(args.mean)}")
+    training = sorted(k for k, v in vars(args).items() if k not in options and v != parser.get_default(k))
+    if training:
+        flags = ", ".join("--" + k.replace("_", "-") for k in training)
+        parser.error(f"--mean trains nothing: {flags} would be ignored; its members' runs set them")
+    if args.out.resolve() == RESULTS.resolve():
+        parser.error(f"--mean: pass --out (a folder other than {RESULTS}, where the main run's page stays)")
+    runs = []
+    for folder in args.mean:
+        stored = folder / page
+        if not stored.is_file():
+            parser.error(f"--mean: no stored run at {stored}")
+        runs.append(json.loads(stored.read_text()))
+        if is_mean(runs[-1]):
+            parser.error(f"--mean: {folder} is itself a mean; name its members")
+    return runs
 
 
 def other_attempt(stage, keys: tuple = ()) -> dict | None:

@@ -52,7 +52,6 @@ import _deepxde as dxd  # benchmarks/_deepxde.py: the scripts run as benchmarks/
 import numpy as np
 import torch
 from _common import (  # benchmarks/_common.py, a sibling
-    RESULTS,
     TERMINALS,
     add_lm_arguments,
     add_start_arguments,
@@ -63,6 +62,7 @@ from _common import (  # benchmarks/_common.py, a sibling
     machine,
     other_attempt,
     parse,
+    stored_members,
     warm_start_of,
 )
 
@@ -499,22 +499,7 @@ def _members(p, args) -> tuple[list[dict], dict]:
     """The stored runs ``--mean`` names, checked before any work: one recipe (the same settings but the seed),
     different seeds, the same default-recipe rows (system, n), each row's chain saved and ending where its row
     did. Returns the runs' records and, by (system, n), the system and the loaded chains."""
-    if len(args.mean) < 2:
-        p.error(f"--mean needs two or more stored runs; got {len(args.mean)}")
-    training = sorted(k for k, v in vars(args).items() if k not in MEAN_OPTIONS and v != p.get_default(k))
-    if training:
-        flags = ", ".join("--" + k.replace("_", "-") for k in training)
-        p.error(f"--mean trains nothing: {flags} would be ignored; its members' runs set them")
-    if args.out.resolve() == RESULTS.resolve():
-        p.error(f"--mean: pass --out (a folder other than {RESULTS}, where the main run's page stays)")
-    runs = []
-    for folder in args.mean:
-        stored = folder / "dimension.json"
-        if not stored.is_file():
-            p.error(f"--mean: no stored run at {stored}")
-        runs.append(json.loads(stored.read_text()))
-        if "members" in runs[-1]["meta"]:
-            p.error(f"--mean: {folder} is itself a mean; name its members")
+    runs = stored_members(p, args, MEAN_OPTIONS, "dimension.json", lambda run: "members" in run["meta"])
     first = runs[0]["meta"]
     for folder, run in zip(args.mean[1:], runs[1:]):
         meta = run["meta"]

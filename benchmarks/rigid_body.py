@@ -50,7 +50,6 @@ from pathlib import Path
 
 import numpy as np
 from _common import (  # benchmarks/_common.py, a sibling
-    RESULTS,
     TERMINALS,
     add_lm_arguments,
     add_start_arguments,
@@ -61,6 +60,7 @@ from _common import (  # benchmarks/_common.py, a sibling
     machine,
     other_attempt,
     parse,
+    stored_members,
     warm_start_of,
 )
 
@@ -375,24 +375,9 @@ MEAN_OPTIONS |= {"artifacts", "note", "threads", "out", "no_progress"}
 def _members(p, args) -> tuple[object, list[dict], list[object]]:
     """The stored runs ``--mean`` names, checked before any work: one recipe (the same training config and
     settings but the seed), different seeds, each chain loaded and ending where its run did, all at one T."""
-    if len(args.mean) < 2:
-        p.error(f"--mean needs two or more stored runs; got {len(args.mean)}")
-    training = sorted(k for k, v in vars(args).items() if k not in MEAN_OPTIONS and v != p.get_default(k))
-    if training:
-        flags = ", ".join("--" + k.replace("_", "-") for k in training)
-        p.error(f"--mean trains nothing: {flags} would be ignored; its members' runs set them")
+    runs = stored_members(p, args, MEAN_OPTIONS, "rigid_body.json", lambda run: "members" in run["infinite"])
     if args.mean_chains is not None and len(args.mean_chains) != len(args.mean):
         p.error(f"--mean-chains: one chain per run of --mean ({len(args.mean)}); got {len(args.mean_chains)}")
-    if args.out.resolve() == RESULTS.resolve():
-        p.error(f"--mean: pass --out (a folder other than {RESULTS}, where the main run's page stays)")
-    runs = []
-    for folder in args.mean:
-        stored = folder / "rigid_body.json"
-        if not stored.exists():
-            p.error(f"--mean: no stored run at {stored}")
-        runs.append(json.loads(stored.read_text()))
-        if "members" in runs[-1]["infinite"]:
-            p.error(f"--mean: {folder} is itself a mean; name its members")
     first, recipe = runs[0]["meta"], ph.TrainConfig.from_dict(runs[0]["meta"]["config"])
     for folder, run in zip(args.mean[1:], runs[1:]):
         differ = [k for k in MEAN_SAME if run["meta"]["args"].get(k) != first["args"].get(k)]

@@ -215,7 +215,7 @@ def test_dimension_mean_measures_the_mean_of_saved_chains_on_every_member_s_stat
         ([runs[0], str(tmp_path / "mean")], "is itself a mean"),
         ([runs[0], str(tmp_path / "nowhere")], "no stored run at"),
         ([*runs, "--width", "9"], "--width would be ignored"),
-        ([*runs, "--out", str(dimension.RESULTS)], "pass --out"),
+        ([*runs, "--out", str(BENCHMARKS / "results")], "pass --out"),
     ):
         with pytest.raises(SystemExit):
             dimension.main([*out, "--mean", *bad])  # a later --out in bad wins
