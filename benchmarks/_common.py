@@ -195,6 +195,11 @@ def warm_start_of(parser: argparse.ArgumentParser, args) -> bool | str:
     return "best" if args.best_start else "features" if args.features_start else not args.cold_start
 
 
+def add_mean_argument(parser: argparse.ArgumentParser, help: str) -> None:
+    """Add ``--mean RUN RUN ...``: the stored runs (their ``--out`` folders) whose chains a mean averages."""
+    parser.add_argument("--mean", type=Path, nargs="+", default=None, metavar="RUN", help=help)
+
+
 def stored_members(parser: argparse.ArgumentParser, args, options: set, page: str, is_mean) -> list[dict]:
     """The stored runs ``--mean`` names (``args.mean``), read and checked before any work: two or more, no flag of
     the training's given (none outside ``options``), an ``--out`` of their own, each a run's ``page`` (its JSON

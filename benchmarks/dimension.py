@@ -54,6 +54,7 @@ import torch
 from _common import (  # benchmarks/_common.py, a sibling
     TERMINALS,
     add_lm_arguments,
+    add_mean_argument,
     add_start_arguments,
     first_terminal_cost,
     lm_rule,
@@ -723,13 +724,9 @@ def main(argv=None) -> int:
         default=None,
         help="the default recipe's LM points per iteration at every n (its last level; default: the width rule's)",
     )
-    p.add_argument(
-        "--mean",
-        type=Path,
-        nargs="+",
-        default=None,
-        metavar="RUN",
-        help="train nothing: measure the mean (ph.AveragedSolution) of the chains two or more stored runs of one "
+    add_mean_argument(
+        p,
+        "train nothing: measure the mean (ph.AveragedSolution) of the chains two or more stored runs of one "
         "recipe saved (their --out folders, run with --save; they differ in seed alone)",
     )
     p.add_argument(

@@ -52,6 +52,7 @@ import numpy as np
 from _common import (  # benchmarks/_common.py, a sibling
     TERMINALS,
     add_lm_arguments,
+    add_mean_argument,
     add_start_arguments,
     first_terminal_cost,
     lm_rule,
@@ -242,13 +243,9 @@ def main(argv=None) -> int:
         "--max-horizon, with the same settings; the stages and wall time of both are reported as one chain",
     )
     p.add_argument("--resume-chain", type=Path, default=None, help="the chain --resume extends (default: the run's)")
-    p.add_argument(
-        "--mean",
-        type=Path,
-        nargs="+",
-        default=None,
-        metavar="RUN",
-        help="train nothing: check the mean (ph.AveragedSolution) of the chains of two or more stored runs (their "
+    add_mean_argument(
+        p,
+        "train nothing: check the mean (ph.AveragedSolution) of the chains of two or more stored runs (their "
         "--out folders) of one recipe from different seeds as a run is checked; its wall time is theirs, summed",
     )
     p.add_argument(

@@ -102,12 +102,13 @@ def _end(run: dict) -> dict:
     return run["infinite"]["stages"][-1]
 
 
-def _mean_note(run: dict) -> str:
-    """For a mean of chains (``benchmarks/rigid_body.py --mean``): how many, and their training time summed."""
-    members = run["infinite"].get("members")
+def _mean_note(part: dict) -> str:
+    """For a mean of chains (``--mean``: of ``benchmarks/rigid_body.py``, ``part`` a run's ``"infinite"``; of
+    ``benchmarks/dimension.py``, a row): how many, and their training time summed; "" for one chain."""
+    members = part.get("members")
     if not members:
         return ""
-    return f"the mean of {len(members)} chains, {run['infinite']['wall_s']:.0f} s of training summed"
+    return f"the mean of {len(members)} chains, {part['wall_s']:.0f} s of training summed"
 
 
 def dimension_goals(out: Path | None = None) -> list[Goal]:
@@ -145,7 +146,7 @@ def dimension_goals(out: Path | None = None) -> list[Goal]:
             v,
             k_v,
             v <= GOAL_VALUE,
-            note=_mean_note(rbs[k_v]),
+            note=_mean_note(rbs[k_v]["infinite"]),
             bound=GOAL_VALUE,
         ),
         Goal(
@@ -155,7 +156,7 @@ def dimension_goals(out: Path | None = None) -> list[Goal]:
             g,
             k_g,
             g <= GOAL_GRAD,
-            note=_mean_note(rbs[k_g]),
+            note=_mean_note(rbs[k_g]["infinite"]),
             bound=GOAL_GRAD,
         ),
         Goal(
@@ -193,7 +194,7 @@ def dimension_goals(out: Path | None = None) -> list[Goal]:
             q,
             k_q,
             q is not None and q <= GOAL_VALUE,
-            note=_mean_note(rbs[k_q]) if k_q in rbs else "",
+            note=_mean_note(rbs[k_q]["infinite"]) if k_q in rbs else "",
             bound=GOAL_VALUE,
         ),
     ]
@@ -221,10 +222,7 @@ def dimension_goals(out: Path | None = None) -> list[Goal]:
         return min((r["value_rel_error"], k) for k, r in rows if (r["system"], r["n"]) == (system, n))
 
     def note(run: str, system: str, n: int) -> str:  # a mean of chains (dimension.py --mean) says so
-        row = next(r for k, r in rows if k == run and (r["system"], r["n"]) == (system, n))
-        if not row.get("members"):
-            return ""
-        return f"the mean of {len(row['members'])} chains, {row['wall_s']:.0f} s of training summed"
+        return _mean_note(next(r for k, r in rows if k == run and (r["system"], r["n"]) == (system, n)))
 
     for n in sorted({r["n"] for _, r in rows if r["system"] == "lq_ladder"}):
         v, k = best("lq_ladder", n)
