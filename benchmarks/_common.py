@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import pinnhjb as ph
 from pinnhjb.executor import check
 from pinnhjb.optimizers import LevenbergMarquardt
 
@@ -221,6 +222,22 @@ def stored_members(parser: argparse.ArgumentParser, args, options: set, page: st
         if is_mean(runs[-1]):
             parser.error(f"--mean: {folder} is itself a mean; name its members")
     return runs
+
+
+def one_recipe(parser: argparse.ArgumentParser, folders: list, runs: list[dict], settings) -> None:
+    """Refuse, through ``parser.error``, stored runs that are not one recipe run with different seeds: the same
+    ``settings(run)`` (a dict of the script's settings a mean's members share) and the same training config
+    (``run["meta"]["config"]``, a :class:`ph.TrainConfig` dict), and no seed twice. Both ``--mean`` scripts."""
+    first, recipe = settings(runs[0]), ph.TrainConfig.from_dict(runs[0]["meta"]["config"])
+    for folder, run in zip(folders[1:], runs[1:]):
+        differ = [k for k, v in settings(run).items() if v != first.get(k)]
+        if ph.TrainConfig.from_dict(run["meta"]["config"]) != recipe:
+            differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
+        if differ:
+            parser.error(f"--mean: {folder} differs from {folders[0]} in {', '.join(differ)}; a mean is of one recipe")
+    seeds = [run["meta"]["seed"] for run in runs]
+    if len(set(seeds)) < len(seeds):
+        parser.error(f"--mean: the runs must differ in seed; got seeds {seeds}")
 
 
 def other_attempt(stage, keys: tuple = ()) -> dict | None:

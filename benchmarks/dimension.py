@@ -61,6 +61,7 @@ from _common import (  # benchmarks/_common.py, a sibling
     lm_settings,
     loop_budget,
     machine,
+    one_recipe,
     other_attempt,
     parse,
     stored_members,
@@ -501,16 +502,8 @@ def _members(p, args) -> tuple[list[dict], dict]:
     different seeds, the same default-recipe rows (system, n), each row's chain saved and ending where its row
     did. Returns the runs' records and, by (system, n), the system and the loaded chains."""
     runs = stored_members(p, args, MEAN_OPTIONS, "dimension.json", lambda run: "members" in run["meta"])
+    one_recipe(p, args.mean, runs, lambda run: {k: run["meta"].get(k, RESUME_DEFAULTS.get(k)) for k in MEAN_SAME})
     first = runs[0]["meta"]
-    for folder, run in zip(args.mean[1:], runs[1:]):
-        meta = run["meta"]
-        if differ := [
-            k for k in MEAN_SAME if meta.get(k, RESUME_DEFAULTS.get(k)) != first.get(k, RESUME_DEFAULTS.get(k))
-        ]:
-            p.error(f"--mean: {folder} differs from {args.mean[0]} in {', '.join(differ)}; a mean is of one recipe")
-    seeds = [run["meta"]["seed"] for run in runs]
-    if len(set(seeds)) < len(seeds):
-        p.error(f"--mean: the runs must differ in seed; got seeds {seeds}")
     keys = [sorted(dimension_rows(run)) for run in runs]
     if not keys[0]:
         p.error(f"--mean: {args.mean[0]} has no measured row of the default recipe")

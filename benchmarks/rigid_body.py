@@ -59,6 +59,7 @@ from _common import (  # benchmarks/_common.py, a sibling
     lm_settings,
     loop_budget,
     machine,
+    one_recipe,
     other_attempt,
     parse,
     stored_members,
@@ -375,16 +376,8 @@ def _members(p, args) -> tuple[object, list[dict], list[object]]:
     runs = stored_members(p, args, MEAN_OPTIONS, "rigid_body.json", lambda run: "members" in run["infinite"])
     if args.mean_chains is not None and len(args.mean_chains) != len(args.mean):
         p.error(f"--mean-chains: one chain per run of --mean ({len(args.mean)}); got {len(args.mean_chains)}")
-    first, recipe = runs[0]["meta"], ph.TrainConfig.from_dict(runs[0]["meta"]["config"])
-    for folder, run in zip(args.mean[1:], runs[1:]):
-        differ = [k for k in MEAN_SAME if run["meta"]["args"].get(k) != first["args"].get(k)]
-        if ph.TrainConfig.from_dict(run["meta"]["config"]) != recipe:
-            differ.append("the training config (width, points, stall rule, loops, pool size, ...)")
-        if differ:
-            p.error(f"--mean: {folder} differs from {args.mean[0]} in {', '.join(differ)}; a mean is of one recipe")
-    seeds = [run["meta"]["seed"] for run in runs]
-    if len(set(seeds)) < len(seeds):
-        p.error(f"--mean: the runs must differ in seed; got seeds {seeds}")
+    one_recipe(p, args.mean, runs, lambda run: {k: run["meta"]["args"].get(k) for k in MEAN_SAME})
+    first, seeds = runs[0]["meta"], [run["meta"]["seed"] for run in runs]
     system = ph.systems.rigid_body(first["args"]["train_scale"])
     chains = []
     for i, (folder, run) in enumerate(zip(args.mean, runs)):
