@@ -46,7 +46,11 @@ def resolve_device(device=None) -> torch.device:
     """``None``/"auto" picks CUDA when present, else CPU; anything else is passed to torch.device."""
     if device is None or device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(device)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        expected = "None, 'auto', 'cpu', 'cuda' or 'cuda:K' (a torch device)"
+        raise ValueError(f"device must be {expected}; got {device!r}") from exc
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError(f"device={device!r} requested but CUDA is not available on this machine")
     return dev

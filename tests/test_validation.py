@@ -264,6 +264,7 @@ CASES = [
     ("seed-1.7", lambda c: solver(seed=1.7), ValueError, r"seed must be an integer .* got 1\.7"),
     ("seed-2**70", lambda c: solver(seed=2**70), ValueError, r"seed must be an integer .* got 1180591620717411303424"),
     ("seed-bool", lambda c: solver(seed=True), ValueError, r"seed must be an integer"),
+    ("device-tpu", lambda c: ph.FiniteHorizonSolver(system(), device="tpu"), ValueError, r"device must .* 'tpu'"),
     ("width-2.5", lambda c: ph.TrainConfig(width=2.5), ValueError, r"width=2\.5 \(expected an integer >= 1\)"),
     ("batch-size-True", lambda c: ph.TrainConfig(batch_size=True), ValueError, r"batch_size=True \(expected an int"),
     ("lm-damping-inf", lambda c: ph.LevenbergMarquardt(damping=math.inf), ValueError, r"damping=inf \(expected a fin"),
