@@ -43,7 +43,8 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 def resolve_device(device=None) -> torch.device:
-    """``None``/"auto" picks CUDA when present, else CPU; anything else is passed to torch.device."""
+    """``None``/"auto" picks CUDA when present, else CPU; anything else is passed to torch.device (a device torch
+    does not know: ValueError; "cuda" on a machine without CUDA: RuntimeError)."""
     if device is None or device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
