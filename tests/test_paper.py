@@ -218,6 +218,14 @@ def test_benchmark_loaders_read_what_the_benchmarks_stored(tmp_path):
     (results / "cuda").mkdir()  # a run one folder down, of a benchmark without a main run
     (results / "cuda" / "speed.json").write_text(json.dumps({"which": "cuda speed"}))
     assert paper.benchmark_runs("speed", out=out) == {"cuda": {"which": "cuda speed"}}
+    stored = paper.results_dir() / "repeats" / "ladder-n6-features-start-seed0"  # a saved chain of the repository
+    chain = paper.dimension_chain(stored.name, "lq_ladder", 6)
+    assert (
+        chain.system.n == 6
+        and chain.horizon == paper.dimension_rows(paper.benchmark_run(stored.name, "dimension"))[("lq_ladder", 6)]["T"]
+    )
+    with pytest.raises(FileNotFoundError):
+        paper.dimension_chain("run-a", "lq_ladder", 4, out=out)  # a run that saved no chain
     record = {
         "rows": [  # the last measured row of each (system, n) and recipe
             {"system": "lq_ladder", "n": 4, "value_rel_error": 1.0},

@@ -185,6 +185,19 @@ def benchmark_run(
     return json.loads(path.read_text())
 
 
+def dimension_chain(run: str, system: str, n: int, folder: str = "repeats", out: Path | None = None):
+    """The chain a stored ``benchmarks/dimension.py`` run saved (``--save``) for one (system, n), loaded.
+
+    * ``run``: the run's folder under ``folder`` (its ``--out``).
+    * ``system``: the family, ``"lq_ladder"`` or ``"converse"``.
+    * ``n``: the state dimension.
+    * ``folder``, ``out``: as in :func:`benchmark_run`.
+
+    The file is ``OUT/chains/<system>-n<n>-default.pt``, the default recipe's (``dimension.py``'s ``chain_name``).
+    """
+    return load(results_dir(out) / folder / run / "chains" / f"{system}-n{n}-default.pt")
+
+
 def run_config(run: dict, *leave_out: str) -> dict:
     """A stored benchmark run's training config (``meta["config"]``, a :class:`~pinnhjb.TrainConfig` as a dict)
     without the settings in ``leave_out``: two runs that differ in those settings alone have equal
