@@ -540,3 +540,21 @@ def test_dimension_terminal_lqr_starts_the_converse_chain_from_x_P_x(tmp_path, c
     dimension.main([*tiny, "--resume", str(tmp_path / "zero"), "--max-horizon", "1", "--out", str(tmp_path / "z1")])
     (row,) = json.loads((tmp_path / "z1" / "dimension.json").read_text())["rows"]
     assert row["T"] == 1.0 and "first terminal cost" not in (tmp_path / "z1" / "dimension.md").read_text()
+
+
+def test_largest_error_measures_stored_chains_beyond_their_states(tmp_path, capsys):
+    """benchmarks/largest_error.py on one stored chain: its own states give the number it stored, and Omega's
+    vertices a number at least as large in abs(V - V*) (the chapters' goals read this table)."""
+    module = _module("largest_error")
+    module.main(["--only", "ladder-n4-best-start", "--starts", "2", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "largest_error.json").read_text())["rows"]
+    stored = json.loads((BENCHMARKS / "results" / "repeats" / "ladder-n4-best-start" / "dimension.json").read_text())
+    assert [r["run"] for r in rows] == ["repeats/ladder-n4-best-start"]
+    (row,) = rows
+    assert row["sampled"] == pytest.approx(stored["rows"][-1]["value_rel_error"], rel=1e-6) == row["stored"]
+    assert row["ascended"] >= row["vertices"] > 0 and row["states"] == stored["meta"]["points"]
+    assert "ladder-n4-best-start" in (tmp_path / "largest_error.md").read_text()
+    with pytest.raises(SystemExit):  # nothing to measure is a usage error, before any work
+        module.main(["--only", "no-such-run", "--out", str(tmp_path / "none")])
+    assert not (tmp_path / "none").exists()
+    capsys.readouterr()

@@ -4,6 +4,7 @@ by RK4)."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -172,3 +173,44 @@ def test_default_grid_sizes():
     assert grid.dtype == torch.float64
     np.testing.assert_allclose(grid.min(0).values.numpy(), [-1.2, -1.2])
     np.testing.assert_allclose(grid.max(0).values.numpy(), [1.2, 1.2])
+
+
+def _corners_max(system, fn) -> float:
+    corners = torch.tensor(list(itertools.product(*np.asarray(system.domain))), dtype=torch.float64)
+    return float(fn(corners).abs().max())
+
+
+def test_largest_value_error_finds_the_error_at_a_vertex_and_inside():
+    """Uniform states of a 6-D box miss its corners: an error that peaks at a vertex is found there, and one that
+    peaks inside (a narrow bump no sample is near) by the ascent; each number is a max over the states looked at."""
+    system = ph.systems.lq_ladder(3)
+    x = system.sample(512, torch.Generator().manual_seed(0), dtype=torch.float64, box=system.domain)
+    scale = _corners_max(system, system.value_star)
+
+    def at_vertex(z):
+        return system.value_star(z) + 1e-3 * z.sum(-1) ** 2
+
+    found = metrics.largest_value_error(system, at_vertex, x, starts=3)
+    sampled = float((1e-3 * x.sum(-1) ** 2).max() / system.value_star(x).max())
+    assert found.sampled == pytest.approx(sampled, rel=1e-12)
+    assert found.vertices == pytest.approx(1e-3 * 36 / scale, rel=1e-12) and found.at_vertex
+    assert found.ascended == pytest.approx(found.vertices, rel=1e-12) and found.scale == pytest.approx(scale)
+    assert found.sampled < found.vertices and float(x.sum(-1).abs().max()) < 5  # no sample near a corner
+    centre = torch.tensor([0.3, -0.2, 0.1, 0.4, -0.5, 0.2], dtype=torch.float64)
+    nearest = int((x - centre).norm(dim=-1).argmin())
+
+    def bump(z):  # peaks at an inner state; its tail reaches the nearest sample, and the ascent climbs from it
+        return system.value_star(z) + 1e-2 * torch.exp(-(z - centre).pow(2).sum(-1) / 0.1)
+
+    found = metrics.largest_value_error(system, bump, x[nearest : nearest + 1], starts=1)
+    assert found.ascended == pytest.approx(1e-2 / scale, rel=1e-6) and not found.at_vertex
+    assert np.allclose(found.state, centre.numpy(), atol=1e-3)
+    assert found.vertices < 0.1 * found.ascended  # the vertices are far from the bump
+
+
+def test_largest_value_error_checks_its_inputs_first():
+    system = ph.systems.lq_ladder(1)
+    with pytest.raises(ValueError, match=r"\(N, 2\)"):
+        metrics.largest_value_error(system, system.value_star, torch.zeros(3, 4, dtype=torch.float64))
+    with pytest.raises(ValueError, match="no known V"):
+        metrics.largest_value_error(ph.systems.pendulum(), system.value_star, torch.zeros(3, 2, dtype=torch.float64))
