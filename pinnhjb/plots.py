@@ -33,6 +33,7 @@ __all__ = [
     "against_dimension",
     "carried_error",
     "averaged_error",
+    "beyond_samples",
     "goal_line",
     "steady_against_finite",
     "VALUE_ERROR",
@@ -629,6 +630,56 @@ def averaged_error(errors, goal: float | None = None, labels=None):
     right.legend(fontsize="small")
     for ax in (left, right):
         ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def beyond_samples(sampled, largest, n, goal: float | None = None, highlight=None, highlight_label: str = ""):
+    """Each chain's largest value error on its sampled states (x) against the largest found on all of Omega, with
+    its vertices and after an ascent (y; :func:`pinnhjb.metrics.largest_value_error`), one colour per n, on log
+    axes with the diagonal y = x (a chain on it errs no more off its states) and the goal on both axes: a chain
+    left of the goal and above it meets the goal on its states but not on Omega.
+
+    * ``sampled``, ``largest``: (K,) the two numbers of K chains.
+    * ``n``: (K,) each chain's state dimension.
+    * ``goal``: the error bound, drawn dashed on both axes; None: none.
+    * ``highlight``: indices of chains to ring; None: none.
+    * ``highlight_label``: what the legend calls the ringed chains ("" : "highlighted").
+    """
+    sampled, largest, n = (np.asarray(a, dtype=float) for a in (sampled, largest, n))
+    if not (sampled.shape == largest.shape == n.shape and sampled.ndim == 1 and len(sampled)):
+        raise ValueError(f"sampled, largest and n must be (K,) alike; got {sampled.shape}, {largest.shape}, {n.shape}")
+    if (sampled <= 0).any() or (largest <= 0).any():
+        raise ValueError("the errors must be positive (log axes)")
+    fig, ax = plt.subplots(figsize=(WIDTH * 0.75, 4.6))
+    for dim in np.unique(n):
+        on = n == dim
+        ax.scatter(sampled[on], largest[on], s=28, label=f"$n={dim:g}$", zorder=3)
+    lo = min(sampled.min(), largest.min()) / 1.5
+    hi = max(sampled.max(), largest.max()) * 1.5
+    ax.plot([lo, hi], [lo, hi], color="0.3", linestyle=":", linewidth=1, label="$y = x$")
+    if highlight is not None:
+        ix = np.atleast_1d(np.asarray(highlight, dtype=int))
+        ax.scatter(
+            sampled[ix],
+            largest[ix],
+            s=140,
+            facecolors="none",
+            edgecolors="k",
+            zorder=4,
+            label=highlight_label or "highlighted",
+        )
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(lo, hi)
+    if goal is not None:
+        ax.axvline(goal, color="k", linestyle="--", linewidth=0.8)
+        goal_line(ax, goal)
+    ax.set_xlabel("largest error on the sampled states")
+    ax.set_ylabel(r"largest error on $\Omega$")
+    ax.legend(fontsize="small", loc="lower right")  # below the diagonal: no chain there
+    ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     return fig
 

@@ -73,6 +73,23 @@ def test_averaged_error_draws_the_members_the_mean_of_the_first_k_and_the_goal()
         plots.averaged_error(errors, labels=["a"])
 
 
+def test_beyond_samples_draws_each_chain_the_diagonal_and_the_goal_on_both_axes():
+    fig = plots.beyond_samples([1e-4, 2e-4, 3e-3], [1.5e-4, 5e-4, 3e-3], [6, 8, 12], goal=1e-4, highlight=[0])
+    ax = fig.axes[0]
+    assert ax.get_xscale() == ax.get_yscale() == "log"
+    labels = [c.get_label() for c in ax.collections]
+    assert labels == ["$n=6$", "$n=8$", "$n=12$", "highlighted"]
+    assert [list(c.get_offsets()[:, 1]) for c in ax.collections[:3]] == [[1.5e-4], [5e-4], [3e-3]]
+    diagonal, across, up = ax.lines  # y = x, and the goal on the x and on the y axis
+    assert list(diagonal.get_xdata()) == list(diagonal.get_ydata())
+    assert across.get_xdata()[0] == 1e-4 and up.get_ydata()[0] == 1e-4
+    plt.close(fig)
+    with pytest.raises(ValueError, match=r"\(K,\) alike"):
+        plots.beyond_samples([1e-4], [1e-4, 2e-4], [6])
+    with pytest.raises(ValueError, match="positive"):
+        plots.beyond_samples([0.0], [1e-4], [6])
+
+
 def test_time_to_accuracy_draws_one_line_per_run_and_the_targets():
     fig = plots.time_to_accuracy(
         {"a": ([1.0, 5.0, 30.0], [1.0, 1e-2, 1e-5]), "b": ([8.0, 300.0], [0.5, 3e-2])}, targets={"paper": 1.5e-4}

@@ -85,10 +85,11 @@ class Goal:
     @property
     def verdict(self) -> str:
         """Whether the goal is met, as chapter 8's table and ``benchmarks/results/index.md`` print it: ``"yes"``,
-        or ``"no"`` with by how much where the goal is a bound (``"no, 1.9 x"``)."""
+        or ``"no"`` with by how much where the goal is a bound (``"no, 1.9 x"``, ``"no, 140 x"``)."""
         if self.met:
             return "yes"
-        return "no" if self.missed_by is None else f"no, {self.missed_by:.2g} x"
+        by = self.missed_by
+        return "no" if by is None else f"no, {by:.0f} x" if by >= 100 else f"no, {by:.2g} x"
 
     def show(self, which: str = "closest", note: bool = True) -> str:
         """``main`` or ``closest`` as a page prints it ("–" where there is none), ``closest`` with the ``note``
